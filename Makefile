@@ -1,0 +1,39 @@
+# volpuzzle: `make demo` sets up and builds the quarter torus; `make test` runs the tests.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+SPECS := $(wildcard specs/*.yaml)
+OUTS := $(patsubst specs/%.yaml,out/%/report.json,$(SPECS))
+
+.PHONY: setup demo test paper bench models clean
+.DELETE_ON_ERROR:
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $@
+
+setup: $(VENV)/.installed
+
+demo: setup
+	$(VENV)/bin/volpuzzle build specs/quarter-torus.yaml --force
+
+test: setup
+	$(PY) -m pytest
+
+# Any spec as a file target, so that `make -j` runs a print batch.
+out/%/report.json: specs/%.yaml $(VENV)/.installed
+	$(VENV)/bin/volpuzzle build $< -o out/$* --force
+
+paper: $(OUTS)
+	@for d in $(patsubst %/report.json,%,$(OUTS)); do $(VENV)/bin/volpuzzle check $$d || exit 1; done
+
+bench: setup
+	$(PY) scripts/bench_spline.py
+	$(PY) scripts/bench.py
+
+models: setup
+	$(PY) scripts/make_models.py
+
+clean:
+	rm -rf out
