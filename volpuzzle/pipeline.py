@@ -1,0 +1,256 @@
+"""Runs the stages in order: spec -> model -> tile -> joint -> randomize -> verify -> compose -> check -> export."""
+
+import math
+import os
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import GeometryError, SpecError
+
+AXES = "uvw"
+
+
+class Progress:
+    """Stage and piece progress on a terminal; silent when stderr is not a terminal (CI, pipes)."""
+
+    def __init__(self, enabled=None):
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+
+    def stage(self, name):
+        if self.enabled:
+            print(f"\r\033[K{name} ...", end="", file=sys.stderr, flush=True)
+
+    def piece(self, i, n, piece_id):
+        if self.enabled:
+            print(f"\r\033[Kcompose {i}/{n} {piece_id}", end="", file=sys.stderr, flush=True)
+
+    def done(self):
+        if self.enabled:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
+
+
+@dataclass
+class Timer:
+    timings: dict = field(default_factory=dict)
+
+    @contextmanager
+    def __call__(self, name, progress=None):
+        if progress is not None:
+            progress.stage(name)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = round(self.timings.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """The model M in mm, ready for the stages, and what the report says of it."""
+
+    volume: object  # spline.Volume, control points in mm
+    scale: float  # mm per model unit, including `size`
+    info: dict
+
+
+def _scaled(vol, factor):
+    return vol if factor == 1.0 else vol.scaled(factor)
+
+
+def load_model_for(spec):
+    """Read or construct M, scale it to mm (units, then size). -> Model"""
+    from .io import load_model_with_meta
+    from .spline.measure import bbox
+
+    ms = spec.model
+    if ms.builtin is not None:
+        from .models import make_builtin
+
+        vol, meta = make_builtin(ms.builtin), {"format": "builtin", "units": "mm"}
+    elif ms.nurbs is not None:
+        vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
+    else:
+        raise SpecError("model.mesh: mesh models are not supported yet (expected model.nurbs or model.builtin)",
+                        source=spec.source)
+    scale = ms.unit_scale
+    vol = _scaled(vol, scale)
+    if ms.size is not None:
+        lo, hi = bbox(vol)
+        largest = float(np.max(np.asarray(hi) - np.asarray(lo)))
+        factor = ms.size / largest
+        vol = _scaled(vol, factor)
+        scale *= factor
+    return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale})
+
+
+def _seams_for(spec, vol):
+    from .spline.seams import find_seams
+
+    return {a: s for a, s in find_seams(vol).items() if a in spec.periodic}, find_seams(vol)
+
+
+def _check_grid_vs_tolerance(spec, tiling, fmap):
+    """A cell thinner than a few tolerances cannot be printed or joined; say which grid would fit."""
+    problems = []
+    tol = spec.output.tolerance
+    for a in range(3):
+        lengths = []
+        for cell in tiling.cells.values():
+            lo, hi = cell.box
+            mid = cell.center
+            p0, p1 = mid.copy(), mid.copy()
+            p0[a], p1[a] = lo[a], hi[a]
+            ts = np.linspace(0, 1, 9)[:, None]
+            pts = fmap.evaluate(p0 + ts * (p1 - p0))
+            lengths.append(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
+        smallest = min(lengths)
+        if smallest < 20 * tol:
+            fit = max(1, int(spec.grid[a] * smallest / (20 * tol)))
+            problems.append(
+                f"grid: {spec.grid[a]} pieces along {AXES[a]} make pieces {smallest:.3g} mm thin, too fine for "
+                f"output.tolerance {tol:g} mm (got {spec.grid[a]}, expected at most {fit} along {AXES[a]} or a smaller "
+                f"tolerance)")
+    if problems:
+        raise SpecError(problems, source=spec.source)
+
+
+def prepare(spec, timer=None, progress=None):
+    """Every stage up to joints, without meshes: what `validate` runs. -> dict of stage results."""
+    from .joint import plan_joints
+    from .mapping import Map
+    from .randomize import warp_family
+    from .spline.measure import volume as volume_of
+    from .tile import tile
+    from .verify import verify_model, verify_warp
+
+    timer = timer or Timer()
+    with timer("load", progress):
+        model = load_model_for(spec)
+    vol = model.volume
+    with timer("verify", progress):
+        model_check = verify_model(vol)
+    seams, all_seams = _seams_for(spec, vol)
+    with timer("tile", progress):
+        tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams)
+    rand = spec.randomize
+    warp, rand_report = None, {"seed": None, "amplitude": 0.0, "jacobian_min_coefficient": None, "bijective": True}
+    if rand is not None and rand.amplitude > 0:
+        with timer("randomize", progress):
+            rng = np.random.default_rng(rand.seed)
+            family = warp_family(vol.domain_array, rand.control_points, rng, seams)
+            warp = family(rand.amplitude)
+        with timer("verify", progress):
+            cert = verify_warp(family, rand.amplitude)
+        rand_report = {"seed": rand.seed, "amplitude": rand.amplitude, "control_points": rand.control_points, **cert}
+    orientation = -1 if model_check["handedness"] == "left" else 1
+    fmap = Map(vol, warp, orientation)
+    _check_grid_vs_tolerance(spec, tiling, fmap)
+    with timer("joint", progress):
+        joints = plan_joints(tiling, fmap, spec.joints)
+    from .spline.measure import bbox
+
+    lo, hi = bbox(vol)
+    model_report = {
+        "volume_mm3": float(volume_of(vol)),
+        "bbox_mm": [np.round(lo, 4).tolist(), np.round(hi, 4).tolist()],
+        "handedness": model_check["handedness"],
+        "degenerate": bool(model_check.get("degenerate", False)),
+        "notes": list(model_check.get("notes", [])),
+        "periodic_axes_found": [AXES[a] for a in sorted(all_seams)],
+        **model.info,
+    }
+    return {"model": model, "tiling": tiling, "fmap": fmap, "joints": joints, "model_report": model_report,
+            "randomize_report": rand_report}
+
+
+def joint_gap_volume(joint):
+    """mm^3 the joint leaves empty between its pieces: hole volume beyond the face less the pin (or dowel) volume."""
+    r, c, length, ac = joint.radius, joint.clearance, joint.length, joint.axial_clearance
+    hole = math.pi * (r + c) ** 2 * (length + ac)
+    if joint.style == "dowel":
+        return 2 * hole
+    return hole - math.pi * r ** 2 * length
+
+
+def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None):
+    """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
+    from .check import check_pieces
+    from .compose import compose
+    from .export import report_piece_entry, write_build
+    from .spec import load_spec, spec_to_dict, with_overrides
+
+    t_start = time.perf_counter()
+    progress = progress if progress is not None else Progress()
+    spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed)
+    target = Path(spec.output.directory)
+    if target.exists() and not force:
+        from .errors import ExportError
+
+        raise ExportError(f"{target}: the output folder exists; use --force to replace it")
+    timer = Timer()
+    stages = prepare(spec, timer, progress)
+    jobs = jobs or os.cpu_count() or 1
+    with timer("compose", progress):
+        pieces = compose(stages["tiling"], stages["fmap"], stages["joints"], spec.output.tolerance, jobs=jobs,
+                         progress=progress.piece)
+    joints = stages["joints"]
+    with timer("check", progress):
+        gaps = sum(joint_gap_volume(j) for j in joints)
+        expected = stages["model_report"]["volume_mm3"] - gaps
+        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected)
+        checks["joint_gaps_mm3"] = round(gaps, 3)
+    if not checks["passed"]:
+        raise GeometryError(_failed_checks_message(checks))
+    ext = spec.output.format
+    report = {
+        "volpuzzle_version": __version__,
+        "spec": spec_to_dict(spec),
+        "model": stages["model_report"],
+        "randomize": stages["randomize_report"],
+        "pieces": [report_piece_entry(p, f"pieces/{p.id}.{ext}") for p in pieces],
+        "joints": [j.to_report() for j in joints],
+        "checks": checks,
+        "plates": [],
+        "assembly_order": [p.id for p in pieces],
+        "timings_s": timer.timings,
+    }
+    dowels = []
+    if spec.joints.style == "dowel":
+        from .joint import dowel_solid
+        from .geometry import to_trimesh
+
+        dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+    with timer("export", progress):
+        write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels)
+    report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
+    progress.done()
+    return report
+
+
+def _failed_checks_message(checks):
+    parts = []
+    if not checks.get("all_closed", True):
+        parts.append(f"pieces not closed: {', '.join(checks.get('closed_failures', []))}")
+    if checks.get("max_overlap_mm3", 0) > checks.get("overlap_limit_mm3", float("inf")):
+        parts.append(f"pieces {' and '.join(checks.get('max_overlap_pair', []))} overlap by "
+                     f"{checks['max_overlap_mm3']:.3g} mm^3 (limit {checks['overlap_limit_mm3']:.3g})")
+    if abs(checks.get("volume_error", 0)) > 0.005:
+        parts.append(f"piece volumes add up to {checks['volume_sum_mm3']:.6g} mm^3, expected "
+                     f"{checks['expected_volume_mm3']:.6g} (error {checks['volume_error']:.2%}, limit 0.5%)")
+    return "build failed its own checks: " + "; ".join(parts or ["see report"])
+
+
+def validate(spec_path):
+    """`volpuzzle validate`: the spec, the model and every cross-check, without building. -> summary dict"""
+    from .spec import load_spec
+
+    spec = load_spec(spec_path)
+    stages = prepare(spec)
+    return {"name": spec.name, "pieces": int(np.prod(spec.grid)), "joints": len(stages["joints"]),
+            "model": stages["model_report"], "randomize": stages["randomize_report"]}
