@@ -20,7 +20,9 @@ class Progress:
     """Stage and piece progress on a terminal; silent when stderr is not a terminal (CI, pipes)."""
 
     def __init__(self, enabled=None):
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        if enabled is None:
+            enabled = sys.stderr.isatty() and not os.environ.get("VOLPUZZLE_NO_PROGRESS")
+        self.enabled = enabled
 
     def stage(self, name):
         if self.enabled:

@@ -1,0 +1,17 @@
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED = REPO.parent / "shared"
+
+
+@pytest.fixture(autouse=True)
+def _no_terminal_progress(monkeypatch):
+    # Builds under test must stay quiet whatever terminal pytest runs in.
+    monkeypatch.setenv("VOLPUZZLE_NO_PROGRESS", "1")
+
+
+def pytest_configure(config):
+    os.environ.setdefault("NUMBA_NUM_THREADS", "2")

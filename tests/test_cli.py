@@ -1,0 +1,129 @@
+"""The command line through click's CliRunner: one-line errors, exit codes, no tracebacks, no half-written output."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import SHARED
+from helpers_build import write_spec
+from volpuzzle.cli import cli
+
+
+def run(*args):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    return result
+
+
+def assert_one_line_error(result):
+    assert result.exit_code == 1, result.output
+    text = result.output.strip()
+    assert "Traceback" not in text
+    assert text.startswith("error: ")
+    assert len(text.splitlines()) == 1
+
+
+def spec_dict(tmp_path, **over):
+    d = {"name": "t", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 2],
+         "output": {"directory": str(tmp_path / "out"), "tolerance": 0.5}}
+    d.update(over)
+    return d
+
+
+def test_info_json_on_gismo_file():
+    result = run("info", SHARED / "data/volumes/gismo_cylinder.xml", "--json")
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    for key in ("degrees", "control_points", "domain", "periodic", "bbox", "volume", "handedness", "jacobian_min",
+                "jacobian_max"):
+        assert key in data
+    assert data["handedness"] == "left"
+    assert data["volume"] == pytest.approx(9.424778, rel=1e-6)
+
+
+def test_info_text():
+    result = run("info", SHARED / "data/volumes/gismo_twisted_pipe.xml")
+    assert result.exit_code == 0
+    assert "volume" in result.output
+
+
+def test_info_bad_model_one_line():
+    assert_one_line_error(run("info", SHARED / "data/volumes/gismo_thbcube.xml"))
+
+
+def test_info_missing_file():
+    assert_one_line_error(run("info", "does/not/exist.json"))
+
+
+def test_validate_ok(tmp_path):
+    result = run("validate", write_spec(tmp_path, spec_dict(tmp_path)))
+    assert result.exit_code == 0, result.output
+    assert "valid" in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_validate_lists_every_mistake(tmp_path):
+    bad = spec_dict(tmp_path, grid=[0, 1, 2], gird=3)
+    bad["output"]["tolerance"] = -1
+    result = run("validate", write_spec(tmp_path, bad))
+    assert_one_line_error(result)
+    for part in ("grid", "gird", "output.tolerance"):
+        assert part in result.output
+
+
+def test_yaml_python_tag_constructs_nothing(tmp_path):
+    marker = tmp_path / "pwned"
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(f"name: !!python/object/apply:os.system ['touch {marker}']\ngrid: [1,1,1]\n")
+    result = run("validate", spec)
+    assert_one_line_error(result)
+    assert not marker.exists()
+
+
+def test_build_refuses_existing_folder_without_force(tmp_path):
+    spec = write_spec(tmp_path, spec_dict(tmp_path))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("mine")
+    result = run("build", spec, "--jobs", "1")
+    assert_one_line_error(result)
+    assert "--force" in result.output
+    assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
+
+
+def test_build_then_check(tmp_path):
+    spec = write_spec(tmp_path, spec_dict(tmp_path))
+    result = run("build", spec, "--jobs", "1")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "out" / "report.json").exists()
+    assert run("check", tmp_path / "out").exit_code == 0
+
+
+def test_folding_model_refused_without_output(tmp_path):
+    from volpuzzle.io import save_model
+    from volpuzzle.spline import Volume
+
+    g = np.linspace(0, 10, 4)
+    cp = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    cp[1, 1, 1, 0] = 25.0  # drags an interior point past its neighbours: det J changes sign
+    k = [0, 0, 0, 0, 1, 1, 1, 1]
+    save_model(Volume((3, 3, 3), (k, k, k), cp), tmp_path / "fold.json")
+    spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": "fold.json"}))
+    result = run("build", spec, "--jobs", "1")
+    assert_one_line_error(result)
+    assert "fold" in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_model_file_in_spec(tmp_path):
+    spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": str(SHARED / "data/volumes/gismo_thbcube.xml")}))
+    assert_one_line_error(run("build", spec))
+    assert not (tmp_path / "out").exists()
+
+
+def test_amplitude_that_folds_via_cli(tmp_path):
+    spec = write_spec(tmp_path, spec_dict(tmp_path, randomize={"seed": 1, "amplitude": 5.0, "control_points": 5}))
+    result = run("build", spec, "--jobs", "1")
+    assert_one_line_error(result)
+    assert "amplitude" in result.output
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,88 @@
+"""Pipeline behaviour on small specs: determinism, pieces counts, report contents, refusal of bad builds."""
+
+import json
+
+import numpy as np
+import pytest
+
+from helpers_build import example_spec, write_spec
+import volpuzzle
+from volpuzzle.errors import ExportError, GeometryError, ModelError, SpecError
+
+
+def small_box_spec(tmp_path, **over):
+    spec = {
+        "name": "box",
+        "model": {"builtin": {"type": "quarter-torus", "major_radius": 50, "minor_radius": 20}},
+        "grid": [2, 1, 2],
+        "randomize": {"seed": 5, "amplitude": 0.2, "control_points": 5},
+        "output": {"directory": str(tmp_path / "out"), "tolerance": 0.5},
+    }
+    spec.update(over)
+    return write_spec(tmp_path, spec)
+
+
+def test_report_has_every_contract_key(tmp_path):
+    report = volpuzzle.build(small_box_spec(tmp_path), jobs=1)
+    for key in ("volpuzzle_version", "spec", "model", "randomize", "pieces", "joints", "checks", "plates",
+                "assembly_order", "timings_s"):
+        assert key in report
+    assert report["model"]["handedness"] in ("right", "left")
+    assert report["randomize"]["bijective"] is True
+    assert report["randomize"]["jacobian_min_coefficient"] > 0
+    assert [p["id"] for p in report["pieces"]] == ["p0-0-0", "p0-0-1", "p1-0-0", "p1-0-1"]
+    for j in report["joints"]:
+        assert abs(np.linalg.norm(j["direction"]) - 1) < 1e-9
+    for stage in ("tile", "joint", "randomize", "verify", "compose", "export"):
+        assert stage in report["timings_s"]
+    assert report["spec"]["output"]["tolerance"] == 0.5
+
+
+def test_same_seed_same_bytes(tmp_path):
+    a = volpuzzle.build(small_box_spec(tmp_path / "a"), jobs=1)
+    b = volpuzzle.build(small_box_spec(tmp_path / "b"), jobs=2)
+    for pa, pb in zip(a["pieces"], b["pieces"]):
+        fa = (tmp_path / "a" / "out" / pa["file"]).read_bytes()
+        fb = (tmp_path / "b" / "out" / pb["file"]).read_bytes()
+        assert fa == fb
+
+
+def test_existing_output_needs_force(tmp_path):
+    spec = small_box_spec(tmp_path)
+    volpuzzle.build(spec, jobs=1)
+    with pytest.raises(ExportError, match="--force"):
+        volpuzzle.build(spec, jobs=1)
+    volpuzzle.build(spec, jobs=1, force=True)
+
+
+def test_amplitude_that_folds_names_safe_amplitude(tmp_path):
+    spec = small_box_spec(tmp_path, randomize={"seed": 5, "amplitude": 4.0, "control_points": 5})
+    with pytest.raises(VolpuzzleErrorTypes) as e:
+        volpuzzle.build(spec, jobs=1)
+    assert "amplitude" in str(e.value)
+    assert not (tmp_path / "out").exists()
+
+
+VolpuzzleErrorTypes = (GeometryError, SpecError)
+
+
+def test_pin_that_does_not_fit(tmp_path):
+    spec = small_box_spec(tmp_path, joints={"radius": 40})
+    with pytest.raises(SpecError, match="joints.radius"):
+        volpuzzle.build(spec, jobs=1)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_builtin_is_a_spec_error(tmp_path):
+    spec = small_box_spec(tmp_path, model={"builtin": {"type": "teapot"}})
+    with pytest.raises(SpecError):
+        volpuzzle.build(spec, jobs=1)
+
+
+def test_periodic_twisted_torus_small(tmp_path):
+    spec = example_spec("twisted-torus", tmp_path, tolerance=0.5, grid=[2, 2, 4])
+    report = volpuzzle.build(spec, jobs=1)
+    assert len(report["pieces"]) == 16
+    seam_joints = [j for j in report["joints"] if j.get("across_seam")]
+    assert len(seam_joints) == 4
+    assert report["checks"]["passed"]
