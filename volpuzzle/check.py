@@ -1,0 +1,231 @@
+"""The build's self-checks: every piece a closed solid, volumes adding up, no two pieces overlapping.
+
+The figures go into report.json "checks"; `passed` False fails the build. `check_directory` runs the
+same checks on a built output folder from its files alone (`volpuzzle check DIR`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Sequence, Tuple
+
+import numpy as np
+import trimesh
+
+from .errors import GeometryError, ModelError, VolpuzzleError
+
+__all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "candidate_pairs", "failure_message",
+           "assert_passed", "check_directory"]
+
+
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed volume of a closed triangle mesh (divergence theorem): positive when normals point outwards."""
+    if len(faces) == 0:
+        return 0.0
+    # Centre first: the sum of tetrahedra is exact for any origin, but far origins cost digits.
+    v = np.asarray(vertices, dtype=np.float64)
+    v = v - v.mean(axis=0)
+    a, b, c = (v[np.asarray(faces)[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def closed_problem(mesh: trimesh.Trimesh):
+    """None if the mesh is a closed solid (watertight, consistently wound, one body, positive volume),
+    else a short description of what is wrong."""
+    if len(mesh.faces) == 0:
+        return "no triangles"
+    # Merge coincident vertices first: what a reader of the STL sees is the welded mesh.
+    m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True, validate=False)
+    if not m.is_watertight:
+        edges = trimesh.grouping.group_rows(m.edges_sorted, require_count=1)
+        return f"not watertight ({len(edges)} open edges)" if len(edges) else "not watertight (non-manifold edges)"
+    if not m.is_winding_consistent:
+        return "inconsistent winding"
+    bodies = m.body_count
+    if bodies != 1:
+        return f"{bodies} separate bodies, expected 1"
+    vol = signed_volume(m.vertices, m.faces)
+    if not vol > 0:
+        return f"volume {vol:.6g} mm^3 is not positive (normals point inwards)"
+    return None
+
+
+def _manifold(mesh: trimesh.Trimesh):
+    """manifold3d.Manifold of a closed mesh, or None when manifold3d refuses it (status != NoError)."""
+    import manifold3d
+
+    m = manifold3d.Manifold(manifold3d.Mesh(
+        vert_properties=np.ascontiguousarray(mesh.vertices, dtype=np.float32),
+        tri_verts=np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
+    return m if m.status() == manifold3d.Error.NoError else None
+
+
+def overlap_volume(a, b) -> float:
+    """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
+    import manifold3d
+
+    inter = a ^ b
+    if inter.status() != manifold3d.Error.NoError:
+        raise GeometryError(f"intersection failed with status {inter.status()}")
+    return float(inter.volume())
+
+
+def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0):
+    """Pairs (i, j), i < j, whose bounding boxes share more than min_common_volume: a sweep along x.
+
+    bounds: (n, 2, 3). Two solids cannot overlap by more than their boxes share, so pairs at or below
+    the limit need no Boolean at all (face neighbours of an unrandomized grid share a box of volume 0).
+    """
+    order = np.argsort(bounds[:, 0, 0], kind="stable")
+    pairs = []
+    for a_pos, i in enumerate(order):
+        for j in order[a_pos + 1:]:
+            if bounds[j, 0, 0] >= bounds[i, 1, 0]:
+                break
+            lo = np.maximum(bounds[i, 0], bounds[j, 0])
+            hi = np.minimum(bounds[i, 1], bounds[j, 1])
+            if np.all(hi > lo) and float(np.prod(hi - lo)) > min_common_volume:
+                pairs.append((int(min(i, j)), int(max(i, j))))
+    return sorted(pairs)
+
+
+def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
+                 volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3) -> dict:
+    """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
+
+    Keys: all_closed, closed_failures (ids), volume_sum_mm3, expected_volume_mm3, volume_error (relative,
+    signed), volume_tolerance, max_overlap_mm3, max_overlap_pair, overlap_limit_mm3 (overlap_fraction of the
+    smallest piece's volume), overlap_pairs_tested, overlap_time_s, failures (sentences), passed.
+    """
+    ids = [str(p[0]) for p in pieces]
+    meshes = [p[1] for p in pieces]
+    failures = []
+    closed_failures = []
+    volumes = np.zeros(len(meshes))
+    for k, (pid, mesh) in enumerate(zip(ids, meshes)):
+        problem = closed_problem(mesh)
+        if problem:
+            closed_failures.append(pid)
+            failures.append(f"piece {pid} is not a closed solid: {problem}")
+        volumes[k] = abs(signed_volume(mesh.vertices, mesh.faces))
+    volume_sum = float(volumes.sum())
+    expected = float(expected_volume_mm3)
+    volume_error = (volume_sum - expected) / expected if expected > 0 else float("inf")
+    if not abs(volume_error) <= volume_tolerance:
+        failures.append(f"piece volumes add up to {volume_sum:.6g} mm^3, expected {expected:.6g} "
+                        f"(error {volume_error:+.3%}, limit {volume_tolerance:.3%})")
+
+    good = [k for k, pid in enumerate(ids) if pid not in set(closed_failures)]
+    limit = overlap_fraction * float(volumes[good].min()) if good else 0.0
+    t0 = time.perf_counter()
+    max_overlap, max_pair, tested = 0.0, [], 0
+    if len(good) > 1:
+        bounds = np.array([meshes[k].bounds for k in good])
+        pairs = candidate_pairs(bounds, min_common_volume=limit)
+        solids = {}
+        for a, b in pairs:
+            for k in (a, b):
+                if k not in solids:
+                    solids[k] = _manifold(meshes[good[k]])
+                    if solids[k] is None:
+                        failures.append(f"piece {ids[good[k]]}: manifold3d refuses the mesh, so overlaps "
+                                        f"with it were not measured")
+            if solids[a] is None or solids[b] is None:
+                continue
+            v = overlap_volume(solids[a], solids[b])
+            tested += 1
+            if v > max_overlap:
+                max_overlap, max_pair = v, [ids[good[a]], ids[good[b]]]
+    overlap_time = time.perf_counter() - t0
+    if max_overlap > limit:
+        failures.append(f"pieces {max_pair[0]} and {max_pair[1]} overlap by {max_overlap:.4g} mm^3 "
+                        f"(limit {limit:.4g} mm^3)")
+    return {
+        "all_closed": not closed_failures,
+        "closed_failures": closed_failures,
+        "volume_sum_mm3": volume_sum,
+        "expected_volume_mm3": expected,
+        "volume_error": volume_error,
+        "volume_tolerance": volume_tolerance,
+        "max_overlap_mm3": max_overlap,
+        "max_overlap_pair": max_pair,
+        "overlap_limit_mm3": limit,
+        "overlap_pairs_tested": tested,
+        "overlap_time_s": round(overlap_time, 4),
+        "failures": failures,
+        "passed": not failures,
+    }
+
+
+def failure_message(checks: dict) -> str:
+    """One line for the user saying every check that failed."""
+    parts = checks.get("failures") or ["see report.json checks"]
+    return "the build failed its own checks: " + "; ".join(parts)
+
+
+def assert_passed(checks: dict) -> dict:
+    """Raise GeometryError with every failure unless checks["passed"]; returns checks."""
+    if not checks.get("passed", False):
+        raise GeometryError(failure_message(checks))
+    return checks
+
+
+def _load_mesh(path: Path) -> trimesh.Trimesh:
+    if path.suffix.lower() == ".3mf":
+        from .io.threemf import read_3mf
+
+        objs = read_3mf(path)
+        if len(objs) != 1:
+            raise ModelError(f"{path}: expected one piece, found {len(objs)} objects")
+        _, v, f, _ = objs[0]
+        return trimesh.Trimesh(v, f, process=True, validate=False)
+    try:
+        mesh = trimesh.load_mesh(path, process=True)
+    except Exception as e:
+        raise ModelError(f"{path}: unreadable piece file: {e}") from e
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ModelError(f"{path}: expected one mesh, got {type(mesh).__name__}")
+    return mesh
+
+
+def check_directory(directory) -> dict:
+    """`volpuzzle check DIR`: re-run the checks on a built puzzle from its files alone.
+
+    Reads report.json for the piece list and the expected volume; every piece file must exist and load.
+    Returns the checks dict (plus "missing_files"); raises VolpuzzleError when the folder is no build.
+    """
+    directory = Path(directory)
+    report_path = directory / "report.json"
+    if not report_path.is_file():
+        raise VolpuzzleError(f"{directory}: not a volpuzzle output folder (no report.json)")
+    try:
+        report = json.loads(report_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise VolpuzzleError(f"{report_path}: unreadable report: {e}") from e
+    entries = report.get("pieces") or []
+    if not entries:
+        raise VolpuzzleError(f"{report_path}: lists no pieces")
+    old = report.get("checks") or {}
+    expected = old.get("expected_volume_mm3")
+    if expected is None:
+        expected = (report.get("model") or {}).get("volume_mm3")
+    if not expected:
+        raise VolpuzzleError(f"{report_path}: no expected volume (checks.expected_volume_mm3 or model.volume_mm3)")
+    pieces, missing, failures = [], [], []
+    for e in entries:
+        path = directory / e["file"]
+        if not path.is_file():
+            missing.append(e["file"])
+            continue
+        try:
+            pieces.append((e["id"], _load_mesh(path)))
+        except VolpuzzleError as err:
+            failures.append(str(err))
+    checks = check_pieces(pieces, float(expected),
+                          volume_tolerance=float(old.get("volume_tolerance", 0.005)))
+    checks["missing_files"] = missing
+    checks["failures"] = [f"missing piece file {m}" for m in missing] + failures + checks["failures"]
+    checks["passed"] = not checks["failures"]
+    return checks
