@@ -1,0 +1,241 @@
+"""Model files: a small registry of readers keyed by format, plus the volpuzzle JSON writer.
+
+Each format module exposes NAME, EXTENSIONS, `detect(path, head: bytes) -> bool` and `read(path) -> (list[Volume],
+meta dict)`. Detection goes by content first (the first HEAD_BYTES of the file) and falls back to the extension, so
+a renamed file still loads and a mislabelled one is not misread.
+
+Every failure is a ModelError whose message starts with the file path and names the field at fault.
+"""
+
+import os
+
+import numpy as np
+
+from ..errors import ExportError, ModelError
+from ..spline.volume import Volume
+
+HEAD_BYTES = 65536
+UNITS = ("mm", "cm", "m", "in")
+AXES = "uvw"
+
+
+# --- helpers shared by the format modules ---------------------------------------------------------------------
+def fail(path, field, message):
+    """A ModelError 'PATH: FIELD: MESSAGE' (field may be empty)."""
+    return ModelError(f"{path}: {field}: {message}" if field else f"{path}: {message}")
+
+
+def parse_floats(path, field, text):
+    """Whitespace-separated numbers -> (n,) float array; a bad token names the field and the token."""
+    tokens = text.split()
+    try:
+        return np.array([float(t) for t in tokens], dtype=float)
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise fail(path, field, f"expected numbers, got {bad!r}") from None
+
+
+def _is_float(t):
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def insert_knot(degree, knots, hpoints, t, times):
+    """Insert knot t `times` times along axis 0 of hpoints (Boehm; The NURBS Book A5.1, needs s + times <= p).
+
+    knots (m,), hpoints (n, ..., 4) homogeneous -> (knots (m+times,), hpoints (n+times, ..., 4)).
+    """
+    p, U, P = degree, np.asarray(knots, float), np.asarray(hpoints, float)
+    if times <= 0:
+        return U, P
+    n = P.shape[0]
+    k = int(np.searchsorted(U, t, side="right")) - 1  # span: U[k] <= t < U[k+1]
+    s = int(np.sum(U == t))
+    r = times
+    Q = np.empty((n + r,) + P.shape[1:])
+    Q[:k - p + 1] = P[:k - p + 1]
+    Q[k - s + r:] = P[k - s:]
+    R = P[k - p:k - s + 1].copy()
+    L = k - p
+    for j in range(1, r + 1):
+        L = k - p + j
+        for i in range(p - j - s + 1):
+            alpha = (t - U[L + i]) / (U[i + k + 1] - U[L + i])
+            R[i] = alpha * R[i + 1] + (1.0 - alpha) * R[i]
+        Q[L] = R[0]
+        Q[k + r - j - s] = R[p - j - s]
+    for i in range(L + 1, k - s):
+        Q[i] = R[i - L]
+    return np.concatenate([U[:k + 1], np.full(r, t), U[k + 1:]]), Q
+
+
+def _clamp_left(p, U, P):
+    a = U[p]
+    s = int(np.sum(U == a))
+    lead = int(np.sum(U < a))
+    if s > p:
+        return U[lead:], P[lead:]
+    U, P = insert_knot(p, U, P, a, p - s)
+    # With a of multiplicity p, the p+1 functions alive right of a match the clamped basis there (their last
+    # polynomial piece does not depend on the knots left of a), so the knots left of a can become a.
+    return np.concatenate([[a], U[lead:]]), P[lead - 1:]
+
+
+def clamp_axis(degree, knots, hpoints, axis):
+    """Turn a floating (unclamped) knot vector into the clamped one describing the same volume on its domain
+    [knots[p], knots[n]]. hpoints (n_u, n_v, n_w, 4) homogeneous; returns (knots, hpoints)."""
+    U = np.asarray(knots, float)
+    P = np.moveaxis(np.asarray(hpoints, float), axis, 0)
+    U, P = _clamp_left(degree, U, P)
+    U, P = _clamp_left(degree, -U[::-1], P[::-1])  # the right end, mirrored
+    return -U[::-1], np.moveaxis(P[::-1], 0, axis)
+
+
+def make_volume(path, degrees, knots, points, weights=None, label=""):
+    """Build a Volume from parsed data, clamping floating knot vectors; ModelErrors get the path (and patch label)
+    as a prefix. points (n_u, n_v, n_w, 3) Cartesian, weights (n_u, n_v, n_w) or None."""
+    where = f"{path}: {label}: " if label else f"{path}: "
+    try:
+        vol = _volume_clamped(degrees, knots, points, weights)
+    except ModelError as e:
+        raise ModelError(where + str(e)) from None
+    return vol
+
+
+def _volume_clamped(degrees, knots, points, weights):
+    try:
+        return Volume(degrees, knots, points, weights)
+    except ModelError as e:
+        if "only clamped" not in str(e):
+            raise
+    # The rest of the validation passed; only the end knots are unclamped: convert (exact on the domain).
+    degrees = tuple(int(d) for d in degrees)
+    cps = np.asarray(points, float)
+    w = np.ones(cps.shape[:3]) if weights is None else np.asarray(weights, float)
+    hp = np.concatenate([cps * w[..., None], w[..., None]], axis=-1)
+    knots = [np.asarray(k, float) for k in knots]
+    for a in range(3):
+        p, k = degrees[a], knots[a]
+        if not (np.all(k[:p + 1] == k[0]) and np.all(k[-p - 1:] == k[-1])):
+            knots[a], hp = clamp_axis(p, k, hp, a)
+    vol = Volume.from_homogeneous(degrees, knots, hp)
+    if weights is not None and vol.weights is None:
+        vol = Volume(vol.degrees, vol.knots, vol.control_points, np.ones(vol.shape))
+    return vol
+
+
+# --- registry ---------------------------------------------------------------------------------------------------
+def _formats():
+    from . import geomdl_json, gismo, irit, vpjson
+
+    return [vpjson, geomdl_json, gismo, irit]
+
+
+def format_names():
+    return [f.NAME for f in _formats()]
+
+
+def _check_file(path):
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ModelError(f"{path}: no such file (expected a model file: .json, .xml or .itd)")
+    if os.path.isdir(path):
+        raise ModelError(f"{path}: is a directory, expected a model file")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEAD_BYTES)
+    except OSError as e:
+        raise ModelError(f"{path}: cannot be read ({e.strerror})") from None
+    if not head.strip():
+        raise ModelError(f"{path}: the file is empty, expected a volume model")
+    return path, head
+
+
+def detect_format(path, head=None):
+    """The format module for a file: by content first, then by extension; ModelError if neither fits."""
+    if head is None:
+        path, head = _check_file(path)
+    fmts = _formats()
+    for f in fmts:
+        if f.detect(path, head):
+            return f
+    ext = os.path.splitext(path)[1].lower()
+    for f in fmts:
+        if ext in f.EXTENSIONS and getattr(f, "EXTENSION_FALLBACK", True):
+            return f
+    if ext == ".json":
+        raise ModelError(
+            f"{path}: not a volume model: expected a volpuzzle JSON (\"format\": \"volpuzzle-nurbs\") or a geomdl "
+            f"JSON (a \"shape\" object of \"type\": \"volume\")")
+    supported = ", ".join(f"{f.NAME} ({'/'.join(f.EXTENSIONS)})" for f in fmts)
+    raise ModelError(f"{path}: unrecognised model format; supported: {supported}")
+
+
+def _read(path):
+    path, head = _check_file(path)
+    fmt = detect_format(path, head)
+    vols, meta = fmt.read(path)
+    if not vols:
+        raise ModelError(f"{path}: no volume in the file (expected a trivariate B-spline or NURBS)")
+    meta = dict(meta)
+    meta.setdefault("units", None)
+    meta["format"] = fmt.NAME
+    meta["patches"] = len(vols)
+    meta["path"] = path
+    return vols, meta
+
+
+def _pick(path, vols, patch):
+    try:
+        k = int(patch)
+    except (TypeError, ValueError):
+        raise ModelError(f"{path}: patch: expected an integer, got {patch!r}") from None
+    if isinstance(patch, bool) or k != patch or not 0 <= k < len(vols):
+        n = len(vols)
+        raise ModelError(f"{path}: patch: {patch!r} is out of range; the file has {n} patch{'es' if n != 1 else ''} "
+                         f"(expected 0 to {n - 1})")
+    return vols[k]
+
+
+def read_patches(path):
+    """Every volume patch in the file -> list[Volume] (at least one)."""
+    return _read(path)[0]
+
+
+def load_model_with_meta(path, patch=0):
+    """-> (Volume, {'format', 'patches', 'units' (str or None), 'path'})."""
+    vols, meta = _read(path)
+    return _pick(meta["path"], vols, patch), meta
+
+
+def load_model(path, patch=0):
+    """Read one patch of a model file in any supported format (SPEC section 2) -> Volume."""
+    return load_model_with_meta(path, patch)[0]
+
+
+def save_model(vol, path, units="mm"):
+    """Write vol as volpuzzle JSON (deterministic bytes, full float precision)."""
+    from .vpjson import dumps
+
+    if units not in UNITS:
+        raise ExportError(f"{path}: units: expected one of {', '.join(UNITS)}, got {units!r}")
+    text = dumps(vol, units)
+    path = os.fspath(path)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except OSError as e:
+        try:
+            os.remove(tmp)
+        except OSError:
+            pass
+        raise ExportError(f"{path}: cannot write the model ({e.strerror})") from None
+    return path
+
+
+__all__ = ["load_model", "load_model_with_meta", "read_patches", "save_model", "detect_format", "format_names"]

@@ -1,0 +1,86 @@
+"""geomdl (NURBS-Python 5.x) JSON as written by `geomdl.exchange.export_json` for volumes.
+
+{"shape": {"type": "volume", "count": N, "data": [{"degree_u": .., "knotvector_u": [..], "size_u": .., (v, w),
+ "control_points": {"points": [[x, y, z], ...], "weights": [...]}, "rational": bool, "dimension": 3}]}}
+
+Points are Cartesian (geomdl exports `ctrlpts`, not the weighted `ctrlptsw`), ordered v fastest, then u, then w:
+flat index = j + n_v * (i + n_u * k).
+"""
+
+import numpy as np
+
+from . import fail, make_volume
+from .vpjson import load_json
+
+NAME = "geomdl-json"
+EXTENSIONS = (".json",)
+EXTENSION_FALLBACK = False
+
+
+def detect(path, head):
+    return head.lstrip()[:1] == b"{" and b'"shape"' in head
+
+
+def _int(path, label, key, d):
+    field = f"{label}.{key}"
+    v = d.get(key)
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise fail(path, field, f"expected an integer, got {v!r}")
+    return v
+
+
+def _patch(path, d, label):
+    if not isinstance(d, dict):
+        raise fail(path, label, "expected an object")
+    dim = d.get("dimension", 3)
+    if dim != 3:
+        kind = "a scalar (1-D) trivariate" if dim == 1 else f"{dim}-D control points"
+        raise fail(path, f"{label}.dimension", f"{kind} is not a volume in space; expected dimension 3, got {dim!r}")
+    degrees, knots, sizes = [], [], []
+    for ax in "uvw":
+        degrees.append(_int(path, label, f"degree_{ax}", d))
+        kv = d.get(f"knotvector_{ax}")
+        if not isinstance(kv, list):
+            raise fail(path, f"{label}.knotvector_{ax}", "expected a list of numbers")
+        try:
+            knots.append(np.array(kv, dtype=float))
+        except (TypeError, ValueError):
+            raise fail(path, f"{label}.knotvector_{ax}", "expected a list of numbers") from None
+        sizes.append(_int(path, label, f"size_{ax}", d))
+    cp = d.get("control_points")
+    if not isinstance(cp, dict) or "points" not in cp:
+        raise fail(path, f"{label}.control_points", "expected an object with \"points\" (and optional \"weights\")")
+    n_u, n_v, n_w = sizes
+    try:
+        pts = np.array(cp["points"], dtype=float)
+    except (TypeError, ValueError):
+        raise fail(path, f"{label}.control_points.points", "expected a list of [x, y, z] numbers") from None
+    count = n_u * n_v * n_w
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] != count:
+        raise fail(path, f"{label}.control_points.points",
+                   f"expected size_u x size_v x size_w = {n_u} x {n_v} x {n_w} = {count} points of 3 coordinates, "
+                   f"got shape {pts.shape}")
+    pts = pts.reshape(n_w, n_u, n_v, 3).transpose(1, 2, 0, 3)
+    w = cp.get("weights")
+    if w is not None:
+        try:
+            w = np.array(w, dtype=float)
+        except (TypeError, ValueError):
+            raise fail(path, f"{label}.control_points.weights", "expected a list of numbers") from None
+        if w.shape != (count,):
+            raise fail(path, f"{label}.control_points.weights", f"expected {count} numbers, got shape {w.shape}")
+        w = w.reshape(n_w, n_u, n_v).transpose(1, 2, 0)
+    return make_volume(path, degrees, knots, pts, w, label=label)
+
+
+def read(path):
+    d = load_json(path)
+    shape = d.get("shape") if isinstance(d, dict) else None
+    if not isinstance(shape, dict):
+        raise fail(path, "shape", "expected a geomdl \"shape\" object")
+    if shape.get("type") != "volume":
+        raise fail(path, "shape.type", f"no volume in the file: expected \"volume\", got {shape.get('type')!r}")
+    data = shape.get("data")
+    if not isinstance(data, list):
+        raise fail(path, "shape.data", "expected a list of volumes")
+    return [_patch(path, p, f"shape.data[{i}]") for i, p in enumerate(data)], {"units": None}

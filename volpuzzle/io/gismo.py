@@ -1,0 +1,205 @@
+"""G+Smo XML: <xml> root holding <Geometry> elements; TensorBSpline3 and TensorNurbs3 are read.
+
+<Geometry type="TensorBSpline3" id="..">
+  <Basis type="TensorBSplineBasis3"> three <Basis type="BSplineBasis" index="0|1|2"><KnotVector degree="p">..
+  <coefs geoDim="3"> x y z ... </coefs>
+TensorNurbs3 wraps that basis in <Basis type="TensorNurbsBasis3"> together with <weights>.
+
+Coefficients run u fastest: flat index = i + n_u * (j + n_v * k) (checked against the IRIT and geomdl versions of the
+same volumes). Numbers are ASCII or base64 (format="B64Float64" etc., little-endian). A <MultiPatch> that lists
+geometry ids gives the patch order; geometries it does not list follow in file order.
+
+No entity expansion: a file with a DOCTYPE or ENTITY declaration is refused.
+"""
+
+import base64
+import binascii
+import re
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from . import fail, make_volume, parse_floats
+
+NAME = "gismo-xml"
+EXTENSIONS = (".xml",)
+SUPPORTED = ("TensorBSpline3", "TensorNurbs3")
+_B64 = {"b64float64": "<f8", "b64float32": "<f4", "b64int32": "<i4", "b64int64": "<i8",
+        "b64uint32": "<u4", "b64uint64": "<u8"}
+_DECL = re.compile(rb"<\?xml[^>]*\?>")
+
+
+def detect(path, head):
+    body = _DECL.sub(b"", head.lstrip(b"\xef\xbb\xbf"))
+    body = re.sub(rb"<!--.*?-->", b"", body, flags=re.S).lstrip()
+    return body.startswith(b"<xml") and body[4:5] in (b">", b" ", b"\t", b"\n", b"\r", b"/")
+
+
+def _parse(path):
+    with open(path, "rb") as f:
+        raw = f.read()
+    if re.search(rb"<!(DOCTYPE|ENTITY)", raw):
+        raise fail(path, "", "XML with DOCTYPE or ENTITY declarations is not accepted (no entity expansion)")
+    # A comment before '<?xml ...?>' is common in G+Smo files and makes the declaration illegal for a strict
+    # parser; the declaration carries nothing we need (the text is UTF-8 or ASCII), so drop it.
+    raw = _DECL.sub(b"", raw, count=1)
+    try:
+        return ET.fromstring(raw)
+    except ET.ParseError as e:
+        line, col = e.position
+        raise fail(path, "", f"invalid or truncated XML at line {line} column {col + 1}: "
+                             f"{str(e).split(':')[0]}") from None
+
+
+def _numbers(path, field, el):
+    text = el.text or ""
+    fmt = (el.get("format") or "ascii").lower()
+    if fmt == "ascii":
+        return parse_floats(path, field, text)
+    if fmt not in _B64:
+        raise fail(path, field, f"unknown number format {el.get('format')!r}; expected ascii or one of "
+                                f"B64Float64, B64Float32, B64Int32, B64Int64, B64UInt32, B64UInt64")
+    try:
+        data = base64.b64decode("".join(text.split()), validate=True)
+    except (binascii.Error, ValueError):
+        raise fail(path, field, f"invalid base64 data (format {el.get('format')})") from None
+    dt = np.dtype(_B64[fmt])
+    if len(data) % dt.itemsize:
+        raise fail(path, field, f"base64 data of {len(data)} bytes is not a whole number of {dt.itemsize}-byte "
+                                f"values (format {el.get('format')})")
+    return np.frombuffer(data, dtype=dt).astype(float)
+
+
+def _bspline_basis(path, basis, label):
+    """TensorBSplineBasis3 element -> (degrees, knots)."""
+    kids = [b for b in basis.findall("Basis")]
+    if len(kids) != 3:
+        raise fail(path, f"{label}.Basis", f"expected three BSplineBasis children, got {len(kids)}")
+    try:
+        keys = [int(b.get("index", a)) for a, b in enumerate(kids)]
+    except ValueError:
+        raise fail(path, f"{label}.Basis", "index: expected 0, 1 or 2") from None
+    kids = [b for _, b in sorted(zip(keys, kids), key=lambda kb: kb[0])]
+    degrees, knots = [], []
+    for a, b in enumerate(kids):
+        field = f"{label}.Basis[{a}]"
+        if b.get("type") != "BSplineBasis":
+            raise fail(path, field, f"type {b.get('type')!r} is not supported; expected BSplineBasis")
+        kv = b.find("KnotVector")
+        if kv is None:
+            raise fail(path, field, "missing <KnotVector>")
+        try:
+            p = int(kv.get("degree"))
+        except (TypeError, ValueError):
+            raise fail(path, f"{field}.KnotVector.degree", f"expected an integer, got {kv.get('degree')!r}") from None
+        degrees.append(p)
+        knots.append(_numbers(path, f"{field}.KnotVector", kv))
+    return degrees, knots
+
+
+def _geometry(path, g, label):
+    gtype = g.get("type")
+    if gtype not in SUPPORTED:
+        raise fail(path, label, f"Geometry type {gtype!r} is not supported; supported: {', '.join(SUPPORTED)} "
+                                f"(trivariate tensor-product B-splines and NURBS)")
+    basis = g.find("Basis")
+    if basis is None:
+        raise fail(path, label, "missing <Basis>")
+    weights = None
+    if gtype == "TensorNurbs3":
+        if basis.get("type") != "TensorNurbsBasis3":
+            raise fail(path, f"{label}.Basis", f"expected type TensorNurbsBasis3, got {basis.get('type')!r}")
+        wel = basis.find("weights")
+        if wel is None:
+            raise fail(path, f"{label}.Basis.weights", "missing: a TensorNurbsBasis3 needs <weights>")
+        weights = _numbers(path, f"{label}.Basis.weights", wel)
+        basis = basis.find("Basis")
+        if basis is None:
+            raise fail(path, f"{label}.Basis", "missing the inner TensorBSplineBasis3")
+    if basis.get("type") != "TensorBSplineBasis3":
+        raise fail(path, f"{label}.Basis", f"expected type TensorBSplineBasis3, got {basis.get('type')!r}")
+    degrees, knots = _bspline_basis(path, basis, label)
+    sizes = [len(k) - p - 1 for k, p in zip(knots, degrees)]
+    for a, n in enumerate(sizes):
+        if n < 1:
+            raise fail(path, f"{label}.Basis[{a}].KnotVector",
+                       f"{len(knots[a])} knots are too few for degree {degrees[a]} (need at least {2 * degrees[a] + 2})")
+    count = sizes[0] * sizes[1] * sizes[2]
+    cel = g.find("coefs")
+    if cel is None:
+        raise fail(path, f"{label}.coefs", "missing <coefs>")
+    coefs = _numbers(path, f"{label}.coefs", cel)
+    gd = cel.get("geoDim")
+    try:
+        geo_dim = int(gd) if gd is not None else (coefs.size // count if count else 0)
+    except ValueError:
+        raise fail(path, f"{label}.coefs.geoDim", f"expected an integer, got {gd!r}") from None
+    if geo_dim == 1:
+        raise fail(path, f"{label}.coefs.geoDim", "a scalar (geoDim 1) trivariate is a field, not a volume in "
+                                                  "space; expected geoDim 3")
+    if geo_dim != 3:
+        raise fail(path, f"{label}.coefs.geoDim", f"expected 3 coordinates per coefficient, got {geo_dim}")
+    if coefs.size != 3 * count:
+        raise fail(path, f"{label}.coefs", f"expected {sizes[0]} x {sizes[1]} x {sizes[2]} = {count} control points "
+                                           f"({3 * count} numbers) to fit the knot vectors, got {coefs.size} numbers")
+    pts = coefs.reshape(sizes[2], sizes[1], sizes[0], 3).transpose(2, 1, 0, 3)
+    if weights is not None:
+        if weights.size != count:
+            raise fail(path, f"{label}.Basis.weights", f"expected {count} weights, got {weights.size}")
+        weights = weights.reshape(sizes[2], sizes[1], sizes[0]).transpose(2, 1, 0)
+    return make_volume(path, degrees, knots, pts, weights, label=label)
+
+
+def _ordered(path, root, geoms):
+    """Geometry elements in patch order: MultiPatch references first, then the rest in file order."""
+    by_id = {g.get("id"): g for g in geoms if g.get("id") is not None}
+    order = []
+    for mp in root.iter("MultiPatch"):
+        pel = mp.find("patches")
+        if pel is None:
+            continue
+        kind = pel.get("type", "id_range")
+        nested = pel.findall("Geometry")
+        if nested:
+            order.extend(nested)
+            continue
+        try:
+            ids = [int(t) for t in (pel.text or "").split()]
+        except ValueError:
+            raise fail(path, "MultiPatch.patches", "expected geometry ids (integers)") from None
+        if kind == "id_range":
+            if len(ids) != 2:
+                raise fail(path, "MultiPatch.patches", f"id_range: expected two ids, got {len(ids)}")
+            ids = list(range(ids[0], ids[1] + 1))
+        for i in ids:
+            g = by_id.get(str(i))
+            if g is None:
+                raise fail(path, "MultiPatch.patches", f"references geometry id {i}, which is not in the file")
+            order.append(g)
+    seen = set()
+    out = []
+    for g in order + geoms:
+        if id(g) not in seen:
+            seen.add(id(g))
+            out.append(g)
+    return out
+
+
+def read(path):
+    root = _parse(path)
+    if root.tag != "xml":
+        raise fail(path, "", f"expected a G+Smo file with an <xml> root element, got <{root.tag}>")
+    geoms = list(root.iter("Geometry"))
+    # Curves and surfaces (boundaries, say) may sit beside the volumes; only trivariate types are patches.
+    vol_geoms = [g for g in _ordered(path, root, geoms) if (g.get("type") or "").endswith("3")]
+    if not vol_geoms:
+        found = sorted({g.get("type") or "?" for g in geoms})
+        have = f" (found: {', '.join(found)})" if found else ""
+        raise fail(path, "Geometry", f"no volume in the file{have}; expected a Geometry of type "
+                                     f"{' or '.join(SUPPORTED)}")
+    vols = []
+    for i, g in enumerate(vol_geoms):
+        gid = g.get("id")
+        label = f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else "")
+        vols.append(_geometry(path, g, label))
+    return vols, {"units": None}

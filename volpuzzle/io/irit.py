@@ -1,0 +1,195 @@
+"""IRIT text data (.itd): trivariates `[TRIVAR BSPLINE lu lv lw ou ov ow PT [KV ..] [KV ..] [KV ..] [pt] ...]` and
+`[TRIVAR BEZIER lu lv lw PT [pt] ...]`; every other object in the file is skipped.
+
+IRIT gives orders (degree + 1). PT is E3 (points [x y z]) or P3 (rational: [w  w*x  w*y  w*z], weight first and
+premultiplied). Points run u fastest: flat index = i + lu * (j + lv * k).
+
+A periodic knot vector (KVP) of order k over lu points has lu + 2k - 1 knots, and the first k - 1 control slabs
+repeat at the end (IRIT's periodic end conditions). We unroll that wrap and convert the floating knot vector to a
+clamped one by knot insertion at the domain ends: the same volume, exactly, on the same domain. (A KVP of lu + k
+knots is read as an already unrolled floating vector.)
+"""
+
+import re
+
+import numpy as np
+
+from . import fail, make_volume
+
+NAME = "irit-itd"
+EXTENSIONS = (".itd", ".dat")
+_TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|\[|\]|#[^\n]*|[^\s\[\]"#]+')
+_PT = re.compile(r"^([EP])(\d+)$", re.I)
+
+
+def detect(path, head):
+    text = head.lstrip()[:4096].upper()
+    return text.startswith(b"[") and (b"[OBJECT" in text or b"TRIVAR" in text or b"CURVE" in text
+                                      or b"SURFACE" in text)
+
+
+def _tree(path, text):
+    """Bracketed tokens -> nested Python lists (strings at the leaves)."""
+    stack = [[]]
+    line = 1
+    pos = 0
+    for m in _TOKEN.finditer(text):
+        line += text.count("\n", pos, m.start())
+        pos = m.start()
+        t = m.group()
+        if t.startswith("#"):
+            continue
+        if t == "[":
+            stack.append([])
+            stack[-1].append(line)  # remember where the list starts, for messages
+        elif t == "]":
+            if len(stack) == 1:
+                raise fail(path, "", f"invalid IRIT data: unbalanced ']' at line {line}")
+            node = stack.pop()
+            stack[-1].append(node)
+        else:
+            stack[-1].append(t)
+    if len(stack) != 1:
+        raise fail(path, "", f"truncated IRIT data: the list opened at line {stack[-1][0]} is never closed "
+                             f"(missing ']')")
+    return stack[0]
+
+
+def _walk(node, name=None):
+    """Yield (trivar node, object name) for every TRIVAR list anywhere in the tree."""
+    items = node[1:] if node and isinstance(node[0], int) else node
+    head = items[0].upper() if items and isinstance(items[0], str) else None
+    if head == "TRIVAR":
+        yield node, name
+        return
+    if head == "OBJECT" and len(items) > 1 and isinstance(items[1], str):
+        name = items[1]
+    for x in items:
+        if isinstance(x, list):
+            yield from _walk(x, name)
+
+
+def _ints(path, field, tokens):
+    try:
+        return [int(t) for t in tokens]
+    except (ValueError, TypeError):
+        raise fail(path, field, f"expected integers, got {' '.join(map(str, tokens))!r}") from None
+
+
+def _floats(path, field, tokens):
+    try:
+        return np.array([float(t) for t in tokens], dtype=float)
+    except (ValueError, TypeError):
+        raise fail(path, field, f"expected numbers, got {' '.join(map(str, tokens))!r}") from None
+
+
+def _trivar(path, node, label):
+    line, items = node[0], node[1:]
+    label = f"{label} (line {line})"
+    if len(items) < 2 or not isinstance(items[1], str):
+        raise fail(path, label, "expected TRIVAR BSPLINE or TRIVAR BEZIER")
+    kind = items[1].upper()
+    scalars = [x for x in items[2:] if isinstance(x, str)]
+    lists = [x for x in items[2:] if isinstance(x, list)]
+    if kind == "BSPLINE":
+        if len(scalars) != 7:
+            raise fail(path, label, "expected 'TRIVAR BSPLINE lu lv lw ou ov ow PT' (three lengths, three orders, "
+                                    f"a point type), got {' '.join(scalars)!r}")
+        lengths = _ints(path, f"{label}: lengths", scalars[:3])
+        orders = _ints(path, f"{label}: orders", scalars[3:6])
+    elif kind == "BEZIER":
+        if len(scalars) != 4:
+            raise fail(path, label, f"expected 'TRIVAR BEZIER lu lv lw PT', got {' '.join(scalars)!r}")
+        lengths = _ints(path, f"{label}: lengths", scalars[:3])
+        orders = list(lengths)
+    else:
+        raise fail(path, label, f"TRIVAR {items[1]} is not supported; expected BSPLINE or BEZIER")
+    pt = _PT.match(scalars[-1])
+    if not pt:
+        raise fail(path, f"{label}: point type", f"expected E3 or P3, got {scalars[-1]!r}")
+    rational, dim = pt.group(1).upper() == "P", int(pt.group(2))
+    if dim == 1:
+        raise fail(path, f"{label}: point type", f"{scalars[-1]} is a scalar trivariate (a field, not a volume in "
+                                                 f"space); expected E3 or P3")
+    if dim != 3:
+        raise fail(path, f"{label}: point type", f"expected E3 or P3 (points in space), got {scalars[-1]}")
+    for a, (n, k) in enumerate(zip(lengths, orders)):
+        if n < 1 or k < 2 or k > n:
+            raise fail(path, f"{label}: {'uvw'[a]}", f"expected order >= 2 and length >= order, got length {n}, "
+                                                    f"order {k}")
+
+    kvs, pts = [], []
+    for x in lists:
+        body = x[1:]
+        if body and isinstance(body[0], str) and body[0].upper() in ("KV", "KVP"):
+            kvs.append((body[0].upper(), _floats(path, f"{label}: {body[0]} (line {x[0]})", body[1:])))
+        elif body and isinstance(body[0], str) and re.match(r"^[-+.\d]", body[0]):
+            pts.append((x[0], body))
+        # anything else is an attribute such as [color 4]: skipped
+    periodic = [False] * 3
+    if kind == "BSPLINE":
+        if len(kvs) != 3:
+            raise fail(path, f"{label}: knot vectors", f"expected three [KV ...] lists (u, v, w), got {len(kvs)}")
+        knots = []
+        for a, ((tag, kv), n, k) in enumerate(zip(kvs, lengths, orders)):
+            field = f"{label}: {tag} {'uvw'[a]}"
+            if tag == "KVP":
+                if len(kv) not in (n + 2 * k - 1, n + k):
+                    raise fail(path, field, f"a periodic knot vector of order {k} over {n} points needs "
+                                            f"{n + 2 * k - 1} knots, got {len(kv)}")
+                periodic[a] = len(kv) == n + 2 * k - 1
+            elif len(kv) != n + k:
+                raise fail(path, field, f"length {len(kv)} does not fit {n} points of order {k} "
+                                        f"(expected {n + k} knots)")
+            knots.append(kv)
+    else:
+        knots = [np.r_[np.zeros(n), np.ones(n)] for n in lengths]
+
+    width = 4 if rational else 3
+    count = lengths[0] * lengths[1] * lengths[2]
+    if len(pts) != count:
+        raise fail(path, f"{label}: control points", f"expected {lengths[0]} x {lengths[1]} x {lengths[2]} = {count} "
+                                                     f"points, got {len(pts)}")
+    flat = np.empty((count, width))
+    for i, (ln, body) in enumerate(pts):
+        if len(body) != width:
+            raise fail(path, f"{label}: point at line {ln}", f"expected {width} numbers for {scalars[-1]}"
+                                                            f"{' ([w w*x w*y w*z])' if rational else ''}, "
+                                                            f"got {len(body)}")
+        flat[i] = _floats(path, f"{label}: point at line {ln}", body)
+    net = flat.reshape(lengths[2], lengths[1], lengths[0], width).transpose(2, 1, 0, 3)
+    if rational:
+        w = net[..., 0]
+        bad = np.argwhere(~(np.isfinite(w) & (w > 0)))
+        if bad.size:
+            i = tuple(bad[0])
+            raise fail(path, f"{label}: weights", f"every weight must be > 0, got {w[i]:g} at index {list(i)}")
+        cps, weights = net[..., 1:] / w[..., None], w
+    else:
+        cps, weights = net, None
+    for a in range(3):
+        if periodic[a]:
+            k = orders[a]
+            idx = np.r_[np.arange(lengths[a]), np.arange(k - 1)]
+            cps = np.take(cps, idx, axis=a)
+            weights = None if weights is None else np.take(weights, idx, axis=a)
+    return make_volume(path, [k - 1 for k in orders], knots, cps, weights, label=label), periodic
+
+
+def read(path):
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError as e:
+        raise fail(path, "", f"cannot be read ({e.strerror})") from None
+    tree = _tree(path, text)
+    vols, periodic = [], []
+    for i, (node, name) in enumerate(_walk(tree)):
+        label = f"TRIVAR[{i}]" + (f" (object {name})" if name else "")
+        vol, per = _trivar(path, node, label)
+        vols.append(vol)
+        periodic.append([ax for ax, p in zip("uvw", per) if p])
+    if not vols:
+        raise fail(path, "TRIVAR", "no volume in the file: expected a [TRIVAR BSPLINE ...] or "
+                                   "[TRIVAR BEZIER ...] object")
+    return vols, {"units": None, "periodic_knots": periodic}
