@@ -190,9 +190,11 @@ def _suggest(word, options) -> str:
 
 
 def _path_join(parent: str, key) -> str:
+    """parent.key, or parent[i] for a list index; odd keys (spaces, dots, empty) are quoted."""
     if isinstance(key, int) and not isinstance(key, bool):
         return f"{parent}[{key}]"
-    return f"{parent}.{key}" if parent else str(key)
+    key = key if isinstance(key, str) and _NAME_RE.fullmatch(key) else _repr.repr(key)
+    return f"{parent}.{key}" if parent else key
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -221,7 +223,7 @@ class _Checker:
             if isinstance(key, str) and key in keys:
                 out[key] = item
                 continue
-            self.bad(_path_join(path, key if isinstance(key, str) else _show(key)),
+            self.bad(_path_join(path, key if isinstance(key, str) else str(key)),
                      "unknown key" + _suggest(key, keys), _show(key), _one_of(keys))
         for key in required:
             if key not in out:
@@ -378,7 +380,7 @@ class _Checker:
             return None
         out, ok = {}, True
         for key, item in value.items():
-            path = _path_join("model.builtin", key if isinstance(key, str) else _show(key))
+            path = _path_join("model.builtin", key if isinstance(key, str) else str(key))
             if not isinstance(key, str):
                 self.bad(path, "not a parameter name", _show(key), "a text key")
                 ok = False
