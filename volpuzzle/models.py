@@ -299,8 +299,79 @@ def sphere_shell(outer_radius=50.0, inner_radius=40.0):
     return _right_handed(Volume((2, 2, 1), (ku, kv, kw), cps, wts))
 
 
-def duck_shell(size=100.0, thickness=6.0):
-    raise NotImplementedError
+def _duck_radius(d):
+    """Radial function of the duck's outer surface about its centre, for unit directions d (n, 3) -> (n,).
+
+    Length 1 along x (beak at +x), a body ellipsoid plus smooth bumps on the radial function: a head up front
+    with a beak, and a tail raised at the back. Star-shaped by construction, so the shell cannot fold."""
+    body = 1.0 / np.sqrt((d[:, 0] / 0.42) ** 2 + (d[:, 1] / 0.30) ** 2 + (d[:, 2] / 0.25) ** 2)
+
+    def bump(direction, height, width):
+        c = np.asarray(direction, float) / np.linalg.norm(direction)
+        ang = np.arccos(np.clip(d @ c, -1.0, 1.0))
+        return height * np.exp(-(ang / width) ** 2)
+
+    return (body + bump((0.55, 0, 1.0), 0.26, 0.38)    # head
+            + bump((1.0, 0, 0.95), 0.16, 0.16)         # beak
+            + bump((-1.0, 0, 0.55), 0.13, 0.22))       # tail
+
+
+def _periodic_matrix(n, t, degree=3):
+    """Collocation matrix (len(t), n) of the uniform periodic cubic B-spline with n control points on [0, 1]."""
+    knots = (np.arange(n + 2 * degree + 1) - degree) / n
+    full = _basis_matrix(knots, degree, t)  # (m, n + degree), control points wrapped
+    return full[:, :n] + np.pad(full[:, n:], ((0, 0), (0, n - degree)))
+
+
+def duck_shell(size=120.0, thickness=8.0):
+    """A rubber-duck-like thick shell, `size` mm long: a ruled volume between a freeform closed surface and its
+    inward offset by `thickness` (control points moved along the surface normal).
+
+    u: the polar angle about the duck's left-right axis (collapsed at the two flank poles), v: the azimuth round
+    the side profile through beak, head, back, tail and belly (closed, C2 across the seam), w: from the inner
+    to the outer surface. Polynomial, bicubic by linear; meant for a 4 x 8 x 1 puzzle."""
+    n_u, n_v = 12, 16  # control rows (polar, clamped) and columns (azimuth, periodic before clamping)
+    th = np.linspace(0, math.pi, 3 * n_u + 1)
+    ph = np.arange(3 * n_v) / (3 * n_v)
+    tt, pp = np.meshgrid(th, 2 * math.pi * ph, indexing="ij")
+    # poles on +y / -y: the flanks, where the duck is plain; the features run round the azimuth
+    d = np.stack([np.sin(tt) * np.sin(pp), np.cos(tt), np.sin(tt) * np.cos(pp)], -1).reshape(-1, 3)
+    pts = (_duck_radius(d)[:, None] * d).reshape(len(th), len(ph), 3)
+    ku = np.concatenate([[0, 0, 0], np.linspace(0, 1, n_u - 2), [1, 1, 1]])
+    a = _basis_matrix(ku, 3, th / math.pi)
+    b = _periodic_matrix(n_v, ph)
+    north, south = pts[0, 0], pts[-1, 0]
+    # least squares with the pole rows held on the poles (NURBS Book 9.4.1, separable in u and v)
+    rhs = pts - a[:, :1, None] * north - a[:, -1:, None] * south
+    inner = np.einsum("ia,abk->ibk", np.linalg.pinv(a[:, 1:-1]), rhs)
+    inner = np.einsum("jb,ibk->ijk", np.linalg.pinv(b), inner)
+    per = np.concatenate([np.tile(north, (1, n_v, 1)), inner, np.tile(south, (1, n_v, 1))], 0)
+    # the periodic v direction in clamped form: the same curve, exactly, on a clamped knot vector
+    kv = np.concatenate([[0, 0, 0], np.linspace(0, 1, n_v + 1), [1, 1, 1]])
+    s = np.linspace(0, 1, 8 * n_v + 1)
+    to_clamped = np.linalg.pinv(_basis_matrix(kv, 3, s)) @ _periodic_matrix(n_v, s)
+    outer = np.einsum("jb,ibk->ijk", to_clamped, per)
+    outer[:, -1] = outer[:, 0]  # close exactly, not to round-off
+    ext = outer.reshape(-1, 3)
+    outer = outer * (size / float(np.max(ext.max(0) - ext.min(0))))
+    kw = np.array([0, 0, 1, 1.0])
+    shell = Volume((3, 3, 1), (ku, kv, kw), np.stack([outer, outer], 2))
+    # outward normals at the Greville points; the pole rows take the mean normal of a ring just off the pole
+    gu = np.clip(_greville(ku, 3), 1e-3, 1 - 1e-3)
+    gv = _greville(kv, 3)
+    uu, vv = np.meshgrid(gu, gv, indexing="ij")
+    uvw = np.stack([uu.ravel(), vv.ravel(), np.zeros(uu.size)], 1)
+    xyz, der = shell.evaluate_with_derivatives(uvw)
+    nrm = np.cross(der[:, :, 0], der[:, :, 1])
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    nrm *= np.sign(np.sum(nrm * (xyz - ext.mean(0) * 0), axis=1))[:, None]
+    nrm = nrm.reshape(uu.shape + (3,))
+    for row in (0, -1):
+        m = nrm[row].mean(0)
+        nrm[row] = m / np.linalg.norm(m)
+    nrm[:, -1] = nrm[:, 0]
+    cps = np.stack([outer - thickness * nrm, outer], 2)
+    return _right_handed(Volume((3, 3, 1), (ku, kv, kw), cps))
 
 
 # --- registry and validation -------------------------------------------------------------------------------------
@@ -310,7 +381,7 @@ BUILTINS = {
     "twisted-torus": (twisted_torus, {"major_radius": 60.0, "minor_radius": 15.0, "twist": 90.0}),
     "generalized-torus": (generalized_torus, {"major_radius": 60.0, "minor_radius": 15.0}),
     "sphere-shell": (sphere_shell, {"outer_radius": 50.0, "inner_radius": 40.0}),
-    "duck-shell": (duck_shell, {"size": 100.0, "thickness": 6.0}),
+    "duck-shell": (duck_shell, {"size": 120.0, "thickness": 8.0}),
 }
 
 # (smaller, larger, how much smaller at most): a radius that must stay below another one
