@@ -119,7 +119,8 @@ def quarter_torus(major_radius=60.0, minor_radius=20.0):
     degenerate spot. The price is det J = 0 on the four corner edges of the patch, on the boundary only.
     """
     pts, w = _disk_section(minor_radius)
-    cps, wts, knots = _revolve(pts, w, major_radius, math.pi / 2, 1)
+    # u runs along z and v along the radius: (e_z, e_rho, e_phi) is right-handed
+    cps, wts, knots = _revolve(pts[..., ::-1], w, major_radius, math.pi / 2, 1)
     k2 = np.array([0, 0, 0, 1, 1, 1.0])
     return _right_handed(Volume((2, 2, 2), (k2, k2, knots), cps, wts))
 
@@ -127,7 +128,7 @@ def quarter_torus(major_radius=60.0, minor_radius=20.0):
 def torus(major_radius=60.0, minor_radius=20.0):
     """Full solid torus, exact rational, closed along w (the major angle: 9 control points, double knots)."""
     pts, w = _disk_section(minor_radius)
-    cps, wts, knots = _revolve(pts, w, major_radius, 2 * math.pi, 4)
+    cps, wts, knots = _revolve(pts[..., ::-1], w, major_radius, 2 * math.pi, 4)  # right-handed as above
     k2 = np.array([0, 0, 0, 1, 1, 1.0])
     return _right_handed(Volume((2, 2, 2), (k2, k2, knots), cps, wts))
 
@@ -135,10 +136,11 @@ def torus(major_radius=60.0, minor_radius=20.0):
 def twisted_torus_point(major_radius, minor_radius, twist, uvw):
     """The exact twisted torus the builtin approximates: (n, 3) parameters in [0, 1]^3 -> (n, 3) points.
 
-    u, v span the square [-r, r]^2 in the (radial, z) plane, turned by twist * w degrees; w goes once round."""
+    v and u span the square [-r, r]^2 in the (radial, z) plane (u along z, v along the radius, so that it is
+    right-handed), turned by twist * w degrees; w goes once round counter-clockwise seen from +z."""
     uvw = np.asarray(uvw, dtype=float)
-    x = (2 * uvw[:, 0] - 1) * minor_radius
-    y = (2 * uvw[:, 1] - 1) * minor_radius
+    x = (2 * uvw[:, 1] - 1) * minor_radius
+    y = (2 * uvw[:, 0] - 1) * minor_radius
     phi = 2 * math.pi * uvw[:, 2]
     th = math.radians(twist) * uvw[:, 2]
     xr = np.cos(th) * x - np.sin(th) * y
@@ -243,6 +245,7 @@ def generalized_torus(major_radius=60.0, minor_radius=15.0):
     breaks[-1] = 1.0
     sq_p, sq_w = _square_section(r)
     dk_p, dk_w = _disk_section(r)
+    sq_p, dk_p = sq_p[..., ::-1], dk_p[..., ::-1]  # u along z, v outward: right-handed with w along the path
 
     def homogeneous(k, s):
         """Exact homogeneous section control points on piece k at local s -> (3, 3, 4), and their d/dw."""

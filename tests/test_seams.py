@@ -1,0 +1,91 @@
+"""Periodic-seam detection: which axes close on themselves, and under which symmetry of the face."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+import volpuzzle
+from volpuzzle import models
+from volpuzzle.spline.seams import Seam, find_seams, periodic_axes
+
+DATA = Path(__file__).parent / "data" / "volumes"
+
+
+def _check_coincide(vol, seam, n=50, seed=0):
+    """Random points of the max face land on the same xyz on the min face, and back."""
+    rng = np.random.default_rng(seed)
+    lo, hi = vol.domain_array
+    uvw = lo + rng.random((n, 3)) * (hi - lo)
+    uvw[:, seam.axis] = hi[seam.axis]
+    on_min = seam.map_max_to_min(uvw)
+    assert np.allclose(on_min[:, seam.axis], lo[seam.axis])
+    size = np.ptp(vol.control_points.reshape(-1, 3), axis=0).max()
+    assert np.max(np.abs(vol.evaluate(uvw) - vol.evaluate(on_min))) < 1e-9 * size
+    assert np.allclose(seam.map_min_to_max(on_min), uvw, atol=1e-12)
+
+
+def test_torus_closes_with_the_identity_along_w_only():
+    vol = models.torus()
+    seams = find_seams(vol)
+    assert list(seams) == [2]
+    assert seams[2] == Seam(2, False, (False, False)) and seams[2].is_identity
+    _check_coincide(vol, seams[2])
+    assert periodic_axes(vol) == [2]
+
+
+def test_quarter_torus_has_no_seam():
+    assert find_seams(models.quarter_torus()) == {}
+
+
+def test_sphere_shell_closes_in_azimuth_only():
+    # the collapsed polar faces are segments on the z axis: +z and -z, which must not count as a seam
+    seams = find_seams(models.sphere_shell())
+    assert list(seams) == [1] and seams[1].is_identity
+
+
+def test_twisted_torus_90_closes_with_a_swap():
+    vol = models.twisted_torus(60, 15, 90)
+    seams = find_seams(vol)
+    assert list(seams) == [2]
+    assert seams[2].swap and not seams[2].is_identity and sum(seams[2].flip) == 1
+    _check_coincide(vol, seams[2])
+
+
+@pytest.mark.parametrize("twist, swap, flips", [(0, False, 0), (180, False, 2), (-90, True, 1), (270, True, 1)])
+def test_twisted_torus_seam_follows_the_twist(twist, swap, flips):
+    vol = models.twisted_torus(50, 10, twist)
+    seams = find_seams(vol)
+    assert list(seams) == [2]
+    assert seams[2].swap == swap and sum(seams[2].flip) == flips
+    _check_coincide(vol, seams[2])
+
+
+def test_gismo_cylinder_file_has_a_seam_on_a_non_unit_domain():
+    vol = volpuzzle.load_model(DATA / "gismo_cylinder.xml")
+    assert vol.domain[0] == (0.0, 4.0)
+    seams = find_seams(vol)
+    assert list(seams) == [0] and seams[0].is_identity
+    _check_coincide(vol, seams[0])
+
+
+def test_a_slightly_open_ring_is_not_periodic():
+    vol = models.twisted_torus(60, 15, 0)
+    cps = vol.control_points.copy()
+    cps[:, :, -1, 2] += 1e-3  # lift the last layer by a micron
+    opened = volpuzzle.spline.Volume(vol.degrees, vol.knots, cps)
+    assert find_seams(opened) == {}
+    assert list(find_seams(opened, rel_tol=1e-4)) == [2]
+
+
+@settings(max_examples=20, deadline=None)
+@given(axis=st.integers(0, 2), swap=st.booleans(), f0=st.booleans(), f1=st.booleans(),
+       pts=st.lists(st.tuples(*[st.floats(0, 1)] * 3), min_size=1, max_size=5))
+def test_seam_maps_are_inverse(axis, swap, f0, f1, pts):
+    seam = Seam(axis, swap, (f0, f1), ((0.0, 2.0), (-1.0, 1.0), (3.0, 4.0)))
+    lo = np.array([0.0, -1.0, 3.0])
+    uvw = lo + np.array(pts) * np.array([2.0, 2.0, 1.0])
+    uvw[:, axis] = seam.domain[axis][1]
+    back = seam.map_min_to_max(seam.map_max_to_min(uvw))
+    assert np.allclose(back, uvw, atol=1e-12)
