@@ -1,0 +1,91 @@
+"""The build's self-checks: closed pieces, volume sum, no overlaps."""
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings, strategies as st
+
+from volpuzzle.check import (assert_passed, candidate_pairs, check_directory, check_pieces, closed_problem,
+                             signed_volume)
+from volpuzzle.errors import GeometryError, VolpuzzleError
+
+
+def split_box(n=2, size=10.0):
+    """An exact n x n x n split of a cube of side n * size, as (id, mesh) pairs."""
+    out = []
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                b = trimesh.creation.box(extents=(size, size, size))
+                b.apply_translation(np.array([i, j, k], float) * size + size / 2)
+                out.append((f"p{i}-{j}-{k}", b))
+    return out
+
+
+def test_exact_split_passes():
+    checks = check_pieces(split_box(), 8000.0)
+    assert checks["passed"], checks["failures"]
+    assert checks["all_closed"] and checks["closed_failures"] == []
+    assert checks["volume_sum_mm3"] == pytest.approx(8000.0)
+    assert abs(checks["volume_error"]) < 1e-12
+    assert checks["max_overlap_mm3"] == 0.0
+    assert checks["overlap_limit_mm3"] == pytest.approx(1.0)  # 1e-3 of the smallest piece (1000 mm^3)
+    assert_passed(checks)
+
+
+def test_moved_piece_overlaps_its_neighbour():
+    pieces = split_box()
+    moved = pieces[0][1].copy()
+    moved.apply_translation([1.0, 0, 0])
+    pieces[0] = (pieces[0][0], moved)
+    checks = check_pieces(pieces, 8000.0)
+    assert not checks["passed"]
+    assert checks["max_overlap_mm3"] == pytest.approx(100.0, rel=1e-6)
+    assert checks["max_overlap_pair"] == ["p0-0-0", "p1-0-0"]
+    assert any("overlap by" in f for f in checks["failures"])
+    with pytest.raises(GeometryError, match="p0-0-0 and p1-0-0 overlap"):
+        assert_passed(checks)
+
+
+def test_open_mesh_is_not_closed():
+    pieces = split_box()
+    holed = pieces[3][1].copy()
+    holed.update_faces(np.arange(len(holed.faces) - 1))
+    pieces[3] = (pieces[3][0], holed)
+    checks = check_pieces(pieces, 8000.0, volume_tolerance=0.5)
+    assert not checks["all_closed"] and not checks["passed"]
+    assert checks["closed_failures"] == ["p0-1-1"]
+    assert any("p0-1-1 is not a closed solid: not watertight" in f for f in checks["failures"])
+
+
+def test_volume_mismatch():
+    checks = check_pieces(split_box(), 8100.0)
+    assert not checks["passed"]
+    assert checks["volume_error"] == pytest.approx(-100 / 8100)
+    assert any("volumes add up to 8000" in f for f in checks["failures"])
+
+
+def test_inverted_and_split_bodies_are_named():
+    box = trimesh.creation.box()
+    inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
+    assert "not positive" in closed_problem(inverted)
+    two = trimesh.util.concatenate([box, box.copy().apply_translation([5, 0, 0])])
+    assert "2 separate bodies" in closed_problem(two)
+    assert closed_problem(box) is None
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-50, 50), st.floats(0.5, 20))
+def test_signed_volume_of_a_moved_box(x, y, z, s):
+    b = trimesh.creation.box(extents=(s, 2 * s, 3 * s)).apply_translation([x, y, z])
+    assert signed_volume(b.vertices, b.faces) == pytest.approx(6 * s ** 3, rel=1e-9)
+
+
+def test_candidate_pairs_skip_touching_boxes():
+    bounds = np.array([[[0, 0, 0], [1, 1, 1]], [[1, 0, 0], [2, 1, 1]], [[0.5, 0.5, 0.5], [1.5, 1.5, 1.5]]], float)
+    assert candidate_pairs(bounds) == [(0, 2), (1, 2)]
+
+
+def test_check_directory_refuses_a_folder_without_report(tmp_path):
+    with pytest.raises(VolpuzzleError, match="no report.json"):
+        check_directory(tmp_path)

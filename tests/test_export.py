@@ -1,0 +1,180 @@
+"""The export stage and the 3MF writer: files, read-back, atomicity, determinism."""
+
+import json
+import os
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+import volpuzzle.export as export_mod
+from volpuzzle.check import check_directory, check_pieces, closed_problem
+from volpuzzle.errors import ExportError, ModelError
+from volpuzzle.export import clean_json, piece_colors, report_piece_entry, write_build
+from volpuzzle.io.threemf import read_3mf, write_3mf
+
+
+def make_pieces(n=2, size=10.0):
+    """Pieces as compose.Piece would hand them over: id, cell, closed mesh in mm, volume, triangles."""
+    out = []
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                b = trimesh.creation.icosphere(subdivisions=1, radius=size / 2) if (i, j, k) == (1, 1, 1) else \
+                    trimesh.creation.box(extents=(size, size, size))
+                b.apply_translation(np.array([i, j, k], float) * size + size / 2)
+                out.append(SimpleNamespace(id=f"p{i}-{j}-{k}", cell=(i, j, k), mesh=b, volume=float(b.volume),
+                                           body_volume=float(b.volume), triangles=len(b.faces)))
+    return out
+
+
+def make_report(pieces):
+    return {"volpuzzle_version": "0.1.0", "spec": {"name": "cubes", "grid": [2, 2, 2]},
+            "model": {"volume_mm3": 8000.0, "bbox_mm": [[0, 0, 0], [20, 20, 20]], "handedness": "right"},
+            "checks": check_pieces([(p.id, p.mesh) for p in pieces], sum(p.volume for p in pieces)),
+            "joints": [], "plates": [], "timings_s": {"compose": 0.5}}
+
+
+@pytest.fixture(scope="module")
+def pieces():
+    return make_pieces()
+
+
+def leftovers(parent):
+    return sorted(p.name for p in parent.iterdir() if p.name.startswith("."))
+
+
+@pytest.mark.parametrize("fmt", ["stl", "3mf"])
+def test_write_build_files_read_back(tmp_path, pieces, fmt):
+    dowel = trimesh.creation.cylinder(radius=2, height=10, sections=16)
+    target = tmp_path / "sub" / "cubes"
+    out = write_build(target, pieces, make_report(pieces), fmt=fmt, dowels=[("dowel-00", dowel)])
+    assert out == target and target.is_dir() and leftovers(target.parent) == []
+    names = sorted(str(p.relative_to(target)) for p in target.rglob("*") if p.is_file())
+    assert names == sorted([f"pieces/{p.id}.{fmt}" for p in pieces]
+                           + [f"dowels/dowel-00.{fmt}", "puzzle.3mf", "report.json", "report.md"])
+    for p in pieces:
+        path = target / "pieces" / f"{p.id}.{fmt}"
+        if fmt == "stl":
+            mesh = trimesh.load_mesh(path)
+        else:
+            ((name, v, f, rgb),) = read_3mf(path, strict=True)
+            assert name == p.id and rgb is not None
+            mesh = trimesh.Trimesh(v, f)
+        assert closed_problem(mesh) is None
+        assert mesh.volume == pytest.approx(p.volume, rel=1e-5)
+    report = json.loads((target / "report.json").read_text(encoding="utf-8"))
+    assert [e["id"] for e in report["pieces"]] == [p.id for p in pieces]
+    assert report["pieces"][0]["file"] == f"pieces/p0-0-0.{fmt}"
+    assert report["dowels"][0]["file"] == f"dowels/dowel-00.{fmt}"
+    assert report["checks"]["passed"] is True and "export" in report["timings_s"]
+    md = (target / "report.md").read_text(encoding="utf-8")
+    assert "| p1-1-1 |" in md and "## Checks: passed" in md
+    # `volpuzzle check DIR` verifies the folder from its files alone
+    assert check_directory(target)["passed"]
+
+
+def test_puzzle_3mf_strict_with_colours(tmp_path, pieces):
+    target = write_build(tmp_path / "c", pieces, make_report(pieces))
+    objs = read_3mf(target / "puzzle.3mf", strict=True)
+    assert [o[0] for o in objs] == [p.id for p in pieces]
+    assert np.array_equal(np.array([o[3] for o in objs]), piece_colors(len(pieces)))
+    for (_, v, f, _), p in zip(objs, pieces):
+        assert np.allclose(trimesh.Trimesh(v, f).bounds, p.mesh.bounds, atol=1e-4)  # assembled in place
+
+
+def test_existing_target_needs_force(tmp_path, pieces):
+    target = write_build(tmp_path / "c", pieces[:2], make_report(pieces[:2]))
+    before = {p: p.read_bytes() for p in target.rglob("*") if p.is_file()}
+    with pytest.raises(ExportError, match="exists; use --force to replace it"):
+        write_build(target, pieces, make_report(pieces))
+    assert {p: p.read_bytes() for p in target.rglob("*") if p.is_file()} == before
+    write_build(target, pieces, make_report(pieces), force=True)
+    assert len(list((target / "pieces").iterdir())) == len(pieces)
+    assert leftovers(tmp_path) == []
+
+
+def test_force_refuses_a_foreign_folder(tmp_path, pieces):
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / "thesis.tex").write_text("precious")
+    with pytest.raises(ExportError, match="not a volpuzzle output folder"):
+        write_build(tmp_path / "home", pieces, make_report(pieces), force=True)
+    assert (tmp_path / "home" / "thesis.tex").read_text() == "precious"
+
+
+def test_failure_midway_leaves_nothing(tmp_path, pieces, monkeypatch):
+    def boom(*a, **k):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(export_mod, "render_report_md", boom)
+    with pytest.raises(ExportError, match="disk on fire"):
+        write_build(tmp_path / "c", pieces, make_report(pieces))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failure_with_force_keeps_the_old_output(tmp_path, pieces, monkeypatch):
+    target = write_build(tmp_path / "c", pieces, make_report(pieces))
+    old = (target / "report.json").read_bytes()
+    monkeypatch.setattr(export_mod, "write_3mf", lambda *a, **k: (_ for _ in ()).throw(OSError("full")))
+    with pytest.raises(ExportError, match="full"):
+        write_build(target, pieces, make_report(pieces), force=True)
+    assert (target / "report.json").read_bytes() == old and leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("fmt", ["stl", "3mf"])
+def test_identical_input_identical_bytes(tmp_path, pieces, fmt):
+    a = write_build(tmp_path / "a", pieces, make_report(pieces), fmt=fmt)
+    b = write_build(tmp_path / "b", make_pieces(), make_report(pieces), fmt=fmt)
+    for p in pieces:
+        rel = f"pieces/{p.id}.{fmt}"
+        assert (a / rel).read_bytes() == (b / rel).read_bytes()
+    assert (a / "puzzle.3mf").read_bytes() == (b / "puzzle.3mf").read_bytes()
+
+
+def test_write_3mf_transform_and_second_material(tmp_path):
+    box = trimesh.creation.box(extents=(2, 2, 2))
+    t = np.hstack([np.eye(3), [[10], [20], [30]]])
+    marks = np.zeros(len(box.faces), int)
+    marks[:4] = 1
+    path = write_3mf(tmp_path / "m.3mf", [("b", box.vertices, box.faces, (1, 2, 3), t),
+                                          ("c", box.vertices, box.faces, None, None)], materials=[marks, None])
+    (n1, v1, _, rgb1), (n2, v2, _, rgb2) = read_3mf(path, strict=True)
+    assert (n1, n2) == ("b", "c") and rgb1.tolist() == [1, 2, 3] and rgb2 is None
+    assert np.allclose(v1.mean(axis=0), [10, 20, 30]) and np.allclose(v2.mean(axis=0), 0)
+
+
+def test_write_3mf_rejects_bad_faces(tmp_path):
+    with pytest.raises(ExportError, match=r"m.3mf: object 'x': face indices must lie in \[0, 2\]"):
+        write_3mf(tmp_path / "m.3mf", [("x", np.zeros((3, 3)), [[0, 1, 5]], None, None)])
+
+
+def test_read_3mf_names_the_file(tmp_path):
+    bad = tmp_path / "bad.3mf"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ModelError, match="bad.3mf: not a readable 3MF file"):
+        read_3mf(bad)
+    with pytest.raises(ModelError, match="missing.3mf: no such 3MF file"):
+        read_3mf(tmp_path / "missing.3mf")
+
+
+def test_unknown_format_is_refused(tmp_path, pieces):
+    with pytest.raises(ExportError, match="output.format: got 'obj'"):
+        write_build(tmp_path / "c", pieces, {}, fmt="obj")
+
+
+def test_piece_colors_distinct_and_stable():
+    c = piece_colors(64)
+    assert c.shape == (64, 3) and c.dtype == np.uint8
+    assert np.array_equal(c, piece_colors(64)) and np.array_equal(c[:5], piece_colors(5))
+    assert len({tuple(x) for x in c}) == 64
+    d = np.linalg.norm(c[1:].astype(float) - c[:-1], axis=1)
+    assert d.min() > 40  # consecutive pieces (often neighbours) differ visibly
+
+
+def test_report_piece_entry_and_clean_json(pieces):
+    e = clean_json(report_piece_entry(pieces[0], "pieces/p0-0-0.stl"))
+    assert e == {"id": "p0-0-0", "cell": [0, 0, 0], "file": "pieces/p0-0-0.stl", "volume_mm3": 1000.0,
+                 "bbox_mm": [[0.0, 0.0, 0.0], [10.0, 10.0, 10.0]], "triangles": 12, "plate": None}
+    assert clean_json({"a": (np.float32(0.1), np.int64(3), float("nan"), 0.1 + 0.2)}) == {"a": [0.1, 3, None, 0.3]}
+    json.dumps(e, allow_nan=False)

@@ -1,0 +1,310 @@
+"""The export stage: piece files, the assembled puzzle, report.json and report.md, written atomically.
+
+Everything is written into a hidden temporary folder beside the target and renamed into place at the
+end, so a failed build leaves nothing half-written, and an existing output is only replaced with force.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Mapping, Optional, Sequence
+
+import numpy as np
+import trimesh
+
+from .errors import ExportError, VolpuzzleError
+from .io.threemf import write_3mf
+
+__all__ = ["write_build", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "FORMATS"]
+
+FORMATS = ("stl", "3mf")
+# Significant digits kept for floats in report.json: far below print resolution, free of 0.30000000000000004.
+_DIGITS = 9
+
+
+def piece_colors(n: int) -> np.ndarray:
+    """(n, 3) uint8 distinct, pleasant colours, the same for the same n.
+
+    Hues step by the golden angle so neighbours in id order differ strongly; lightness and saturation
+    cycle through three levels so that large puzzles still tell pieces apart.
+    """
+    golden = (math.sqrt(5.0) - 1.0) / 2.0
+    out = np.zeros((max(int(n), 0), 3), dtype=np.uint8)
+    for k in range(len(out)):
+        hue = (0.08 + k * golden) % 1.0
+        light = (0.58, 0.48, 0.68)[k % 3]
+        sat = (0.62, 0.72, 0.52)[(k // 3) % 3]
+        out[k] = np.round(np.array(colorsys.hls_to_rgb(hue, light, sat)) * 255.0)
+    return out
+
+
+def _id_mesh(piece):
+    """(id, trimesh) of a compose.Piece or an (id, mesh) pair."""
+    if isinstance(piece, (tuple, list)):
+        return str(piece[0]), piece[1]
+    return str(piece.id), piece.mesh
+
+
+def _cell(piece, pid):
+    cell = getattr(piece, "cell", None)
+    if cell is None and pid.startswith("p"):
+        try:
+            cell = tuple(int(x) for x in pid[1:].split("-"))
+        except ValueError:
+            cell = None
+    return None if cell is None else [int(x) for x in cell]
+
+
+def report_piece_entry(piece, file) -> dict:
+    """A piece's line in report.json "pieces": id, cell, file, volume_mm3, bbox_mm, triangles, plate (None
+    until the layout assigns one)."""
+    pid, mesh = _id_mesh(piece)
+    volume = getattr(piece, "volume", None)
+    if volume is None:
+        volume = abs(float(mesh.volume))
+    triangles = getattr(piece, "triangles", None)
+    if triangles is None:
+        triangles = len(mesh.faces)
+    return {
+        "id": pid,
+        "cell": _cell(piece, pid),
+        "file": str(file),
+        "volume_mm3": float(volume),
+        "bbox_mm": np.asarray(mesh.bounds, dtype=float).tolist(),
+        "triangles": int(triangles),
+        "plate": None,
+    }
+
+
+def clean_json(x):
+    """Plain JSON values: numpy -> Python, tuples -> lists, floats to 9 significant digits, nan/inf -> None."""
+    if isinstance(x, Mapping):
+        return {str(k): clean_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [clean_json(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return clean_json(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        # float32 carries ~7 digits: its shortest repr, not the float64 expansion of it (0.100000001)
+        x = float(str(x)) if isinstance(x, (np.float32, np.float16)) else float(x)
+        if not math.isfinite(x):
+            return None
+        return float(f"{x:.{_DIGITS}g}")
+    if isinstance(x, Path):
+        return x.as_posix()
+    if x is None or isinstance(x, str):
+        return x
+    return str(x)
+
+
+def _fmt(x, nd=3):
+    if x is None:
+        return "–"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, float):
+        return f"{x:,.{nd}f}" if abs(x) >= 1e-3 or x == 0 else f"{x:.3g}"
+    return str(x)
+
+
+def render_report_md(report: dict) -> str:
+    """report.md: the report for people — summary, pieces, plates, checks, timings, preview."""
+    spec = report.get("spec") or {}
+    name = spec.get("name") or "puzzle"
+    model = report.get("model") or {}
+    pieces = report.get("pieces") or []
+    joints = report.get("joints") or []
+    checks = report.get("checks") or {}
+    lines = [f"# {name}", ""]
+    if report.get("volpuzzle_version"):
+        lines += [f"Built with volpuzzle {report['volpuzzle_version']}.", ""]
+    if report.get("preview"):
+        lines += [f"![assembled and exploded views]({report['preview']})", ""]
+    grid = spec.get("grid")
+    lines += ["## Summary", "", "| | |", "|---|---|"]
+    if grid:
+        lines.append(f"| grid | {' × '.join(str(g) for g in grid)} |")
+    lines.append(f"| pieces | {len(pieces)} |")
+    lines.append(f"| joints | {len(joints)} |")
+    if model.get("volume_mm3") is not None:
+        lines.append(f"| model volume | {_fmt(model['volume_mm3'], 1)} mm³ |")
+    if model.get("bbox_mm"):
+        size = np.ptp(np.asarray(model["bbox_mm"], dtype=float), axis=0)
+        lines.append(f"| model size | {' × '.join(f'{s:.1f}' for s in size)} mm |")
+    if model.get("handedness"):
+        lines.append(f"| handedness | {model['handedness']} |")
+    rnd = report.get("randomize") or {}
+    if rnd.get("amplitude"):
+        lines.append(f"| randomized | seed {rnd.get('seed')}, amplitude {rnd.get('amplitude')} |")
+    lines += ["", "## Pieces", "", "| piece | cell | file | volume (mm³) | size (mm) | triangles | plate |",
+              "|---|---|---|---:|---|---:|---:|"]
+    for p in pieces:
+        bbox = p.get("bbox_mm")
+        size = " × ".join(f"{s:.1f}" for s in np.ptp(np.asarray(bbox, dtype=float), axis=0)) if bbox else "–"
+        cell = "-".join(str(c) for c in p["cell"]) if p.get("cell") is not None else "–"
+        lines.append(f"| {p.get('id')} | {cell} | [{p.get('file')}]({p.get('file')}) | "
+                     f"{_fmt(p.get('volume_mm3'), 1)} | {size} | {p.get('triangles', '–')} | "
+                     f"{_fmt(p.get('plate'))} |")
+    dowels = report.get("dowels") or []
+    if dowels:
+        lines += ["", f"Loose dowels: {len(dowels)} (folder `dowels/`)."]
+    plates = report.get("plates") or []
+    if plates:
+        lines += ["", "## Plates", "", "| plate | pieces |", "|---|---|"]
+        for pl in plates:
+            lines.append(f"| [{pl.get('file')}]({pl.get('file')}) | {', '.join(pl.get('pieces', []))} |")
+    if checks:
+        verdict = "passed" if checks.get("passed") else "FAILED"
+        lines += ["", f"## Checks: {verdict}", "", "| check | value |", "|---|---|"]
+        lines.append(f"| all pieces closed | {_fmt(checks.get('all_closed'))} |")
+        if checks.get("closed_failures"):
+            lines.append(f"| not closed | {', '.join(checks['closed_failures'])} |")
+        if checks.get("volume_sum_mm3") is not None:
+            lines.append(f"| volume sum | {_fmt(checks['volume_sum_mm3'], 1)} mm³ |")
+        if checks.get("expected_volume_mm3") is not None:
+            lines.append(f"| expected volume | {_fmt(checks['expected_volume_mm3'], 1)} mm³ |")
+        if checks.get("volume_error") is not None:
+            lines.append(f"| volume error | {checks['volume_error']:+.4%} |")
+        if checks.get("max_overlap_mm3") is not None:
+            pair = checks.get("max_overlap_pair") or []
+            where = f" ({' / '.join(pair)})" if pair else ""
+            lines.append(f"| largest overlap | {_fmt(checks['max_overlap_mm3'], 4)} mm³{where} |")
+        if checks.get("overlap_limit_mm3") is not None:
+            lines.append(f"| overlap limit | {_fmt(checks['overlap_limit_mm3'], 4)} mm³ |")
+        for f in checks.get("failures") or []:
+            lines.append(f"| failure | {f} |")
+    timings = report.get("timings_s") or {}
+    if timings:
+        lines += ["", "## Timings", "", "| stage | seconds |", "|---|---:|"]
+        for k, v in timings.items():
+            lines.append(f"| {k} | {_fmt(v, 2)} |")
+    return "\n".join(lines) + "\n"
+
+
+def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb) -> None:
+    if fmt == "stl":
+        # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes.
+        path.write_bytes(trimesh.exchange.stl.export_stl(mesh))
+    else:
+        write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)])
+
+
+def _looks_like_output(target: Path) -> bool:
+    """Only folders volpuzzle wrote (or empty ones) are replaced with force, never a user's other folder."""
+    return (target / "report.json").is_file() or not any(target.iterdir())
+
+
+def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
+                dowels: Sequence = (), colors: Optional[np.ndarray] = None,
+                extras: Optional[Mapping[str, Callable[[Path], None]]] = None) -> Path:
+    """Write the output folder (SPEC section 5) atomically -> the target path.
+
+    pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.
+    colors: (n, 3) uint8 per piece, default piece_colors(n). extras: {relative path: writer(path)} for
+    files produced elsewhere (plates, preview), called inside the temporary folder.
+    Raises ExportError when the target exists without force, or on any failed write.
+    """
+    t0 = time.perf_counter()
+    target = Path(target)
+    if fmt not in FORMATS:
+        raise ExportError(f"output.format: got {fmt!r}, expected one of {', '.join(FORMATS)}")
+    items = [_id_mesh(p) for p in pieces]
+    if not items:
+        raise ExportError(f"{target}: no pieces to write")
+    ids = [pid for pid, _ in items]
+    if len(set(ids)) != len(ids):
+        raise ExportError(f"{target}: piece ids repeat ({', '.join(sorted({i for i in ids if ids.count(i) > 1}))})")
+    colors = piece_colors(len(items)) if colors is None else np.asarray(colors, dtype=np.uint8)
+    if colors.shape != (len(items), 3):
+        raise ExportError(f"colors: got shape {colors.shape}, expected ({len(items)}, 3)")
+    if target.exists() or target.is_symlink():
+        if not force:
+            raise ExportError(f"{target} exists; use --force to replace it")
+        if not target.is_dir() or target.is_symlink():
+            raise ExportError(f"{target} exists and is not a folder; refusing to replace it")
+        if not _looks_like_output(target):
+            raise ExportError(f"{target} is not a volpuzzle output folder (no report.json) and not empty; "
+                              f"refusing to replace it, even with --force")
+    parent = target.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
+        tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it private; the output folder should not be
+    except OSError as e:
+        raise ExportError(f"{target}: cannot create the output folder: {e}") from e
+    try:
+        report = dict(report)
+        (tmp / "pieces").mkdir()
+        entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
+        piece_entries = []
+        for (pid, mesh), piece, rgb in zip(items, pieces, colors):
+            rel = f"pieces/{pid}.{fmt}"
+            _write_piece(tmp / rel, pid, mesh, fmt, rgb)
+            entry = entries.get(pid) or report_piece_entry(piece, rel)
+            entry["file"] = rel
+            piece_entries.append(entry)
+        report["pieces"] = piece_entries
+        if dowels:
+            (tmp / "dowels").mkdir()
+            dowel_entries = []
+            for name, mesh in dowels:
+                rel = f"dowels/{name}.{fmt}"
+                _write_piece(tmp / rel, str(name), mesh, fmt, (200, 200, 200))
+                dowel_entries.append({"name": str(name), "file": rel, "volume_mm3": abs(float(mesh.volume))})
+            report["dowels"] = dowel_entries
+        write_3mf(tmp / "puzzle.3mf", [(pid, mesh.vertices, mesh.faces, rgb, None)
+                                       for (pid, mesh), rgb in zip(items, colors)])
+        for rel, writer in (extras or {}).items():
+            dest = tmp / rel
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            writer(dest)
+        if report.get("preview") and not (tmp / report["preview"]).is_file():
+            report.pop("preview")  # never link a picture that is not there
+        if not report.get("preview") and (tmp / "preview.png").is_file():
+            report["preview"] = "preview.png"
+        timings = dict(report.get("timings_s") or {})
+        timings.setdefault("export", time.perf_counter() - t0)
+        report["timings_s"] = timings
+        report = clean_json(report)
+        (tmp / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        (tmp / "report.md").write_text(render_report_md(report), encoding="utf-8")
+        _move_into_place(tmp, target)
+    except BaseException as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, VolpuzzleError) or not isinstance(e, Exception):
+            raise
+        raise ExportError(f"{target}: writing the output failed: {e}") from e
+    return target
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _move_into_place(tmp: Path, target: Path) -> None:
+    """Rename tmp to target; an existing target is set aside first and only removed once tmp is in place."""
+    if not (target.exists() or target.is_symlink()):
+        os.replace(tmp, target)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+    old.rmdir()
+    os.replace(target, old)
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        os.replace(old, target)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
