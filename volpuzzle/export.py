@@ -22,7 +22,7 @@ import trimesh
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import write_3mf
 
-__all__ = ["write_build", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "FORMATS"]
+__all__ = ["write_build", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS"]
 
 FORMATS = ("stl", "3mf")
 # Significant digits kept for floats in report.json: far below print resolution, free of 0.30000000000000004.
@@ -106,6 +106,22 @@ def clean_json(x):
     if x is None or isinstance(x, str):
         return x
     return str(x)
+
+
+def dumps_report(obj, indent: int = 2, _level: int = 0) -> str:
+    """JSON with indent, but short lists of numbers (points, boxes, cells) kept on one line."""
+    pad, inner = " " * (indent * _level), " " * (indent * (_level + 1))
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        body = [f"{inner}{json.dumps(k)}: {dumps_report(v, indent, _level + 1)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(body) + "\n" + pad + "}"
+    if isinstance(obj, list):
+        flat = json.dumps(obj, allow_nan=False)
+        if not obj or (len(flat) <= 80 and all(not isinstance(v, dict) for v in obj)):
+            return flat
+        return "[\n" + ",\n".join(inner + dumps_report(v, indent, _level + 1) for v in obj) + "\n" + pad + "]"
+    return json.dumps(obj, allow_nan=False)
 
 
 def _fmt(x, nd=3):
@@ -275,9 +291,10 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
             report["preview"] = "preview.png"
         timings = dict(report.get("timings_s") or {})
         timings.setdefault("export", time.perf_counter() - t0)
-        report["timings_s"] = timings
+        report["timings_s"] = {k: (round(float(v), 3) if isinstance(v, (int, float)) else v)
+                               for k, v in timings.items()}
         report = clean_json(report)
-        (tmp / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        (tmp / "report.json").write_text(dumps_report(report) + "\n", encoding="utf-8")
         (tmp / "report.md").write_text(render_report_md(report), encoding="utf-8")
         _move_into_place(tmp, target)
     except BaseException as e:
