@@ -10,7 +10,7 @@ import trimesh
 
 import volpuzzle.export as export_mod
 from volpuzzle.check import check_directory, check_pieces, closed_problem
-from volpuzzle.errors import ExportError, ModelError
+from volpuzzle.errors import ExportError, GeometryError, ModelError
 from volpuzzle.export import clean_json, piece_colors, report_piece_entry, write_build
 from volpuzzle.io.threemf import read_3mf, write_3mf
 
@@ -73,6 +73,15 @@ def test_write_build_files_read_back(tmp_path, pieces, fmt):
     assert "| p1-1-1 |" in md and "## Checks: passed" in md
     # `volpuzzle check DIR` verifies the folder from its files alone
     assert check_directory(target)["passed"]
+
+
+def test_check_directory_names_a_missing_piece(tmp_path, pieces):
+    target = write_build(tmp_path / "c", pieces, make_report(pieces))
+    (target / "pieces" / "p1-0-0.stl").unlink()
+    with pytest.raises(GeometryError, match=r"c failed its own checks: missing piece file pieces/p1-0-0.stl"):
+        check_directory(target)
+    checks = check_directory(target, raise_on_failure=False)
+    assert checks["missing_files"] == ["pieces/p1-0-0.stl"] and not checks["passed"]
 
 
 def test_puzzle_3mf_strict_with_colours(tmp_path, pieces):

@@ -52,14 +52,14 @@ def closed_problem(mesh: trimesh.Trimesh):
     return None
 
 
-def _manifold(mesh: trimesh.Trimesh):
-    """manifold3d.Manifold of a closed mesh, or None when manifold3d refuses it (status != NoError)."""
-    import manifold3d
+def _manifold(mesh: trimesh.Trimesh, pid: str):
+    """manifold3d.Manifold of a closed mesh, or the engine's complaint as a string."""
+    from .geometry import manifold_from_mesh
 
-    m = manifold3d.Manifold(manifold3d.Mesh(
-        vert_properties=np.ascontiguousarray(mesh.vertices, dtype=np.float32),
-        tri_verts=np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
-    return m if m.status() == manifold3d.Error.NoError else None
+    try:
+        return manifold_from_mesh(mesh.vertices, mesh.faces, f"piece {pid}", keep_faces=False)
+    except GeometryError as e:
+        return str(e)
 
 
 def overlap_volume(a, b) -> float:
@@ -128,11 +128,10 @@ def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_
         for a, b in pairs:
             for k in (a, b):
                 if k not in solids:
-                    solids[k] = _manifold(meshes[good[k]])
-                    if solids[k] is None:
-                        failures.append(f"piece {ids[good[k]]}: manifold3d refuses the mesh, so overlaps "
-                                        f"with it were not measured")
-            if solids[a] is None or solids[b] is None:
+                    solids[k] = _manifold(meshes[good[k]], ids[good[k]])
+                    if isinstance(solids[k], str):
+                        failures.append(f"{solids[k]}; its overlaps were not measured")
+            if isinstance(solids[a], str) or isinstance(solids[b], str):
                 continue
             v = overlap_volume(solids[a], solids[b])
             tested += 1
@@ -159,16 +158,16 @@ def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_
     }
 
 
-def failure_message(checks: dict) -> str:
+def failure_message(checks: dict, what: str = "the build") -> str:
     """One line for the user saying every check that failed."""
     parts = checks.get("failures") or ["see report.json checks"]
-    return "the build failed its own checks: " + "; ".join(parts)
+    return f"{what} failed its own checks: " + "; ".join(parts)
 
 
-def assert_passed(checks: dict) -> dict:
+def assert_passed(checks: dict, what: str = "the build") -> dict:
     """Raise GeometryError with every failure unless checks["passed"]; returns checks."""
     if not checks.get("passed", False):
-        raise GeometryError(failure_message(checks))
+        raise GeometryError(failure_message(checks, what))
     return checks
 
 
@@ -190,11 +189,13 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
-def check_directory(directory) -> dict:
+def check_directory(directory, raise_on_failure: bool = True) -> dict:
     """`volpuzzle check DIR`: re-run the checks on a built puzzle from its files alone.
 
     Reads report.json for the piece list and the expected volume; every piece file must exist and load.
-    Returns the checks dict (plus "missing_files"); raises VolpuzzleError when the folder is no build.
+    Returns the checks dict plus "missing_files" and a one-line "summary"; raises VolpuzzleError when the
+    folder is no build, and GeometryError listing every failure when a check fails (unless
+    raise_on_failure is False).
     """
     directory = Path(directory)
     report_path = directory / "report.json"
@@ -228,4 +229,10 @@ def check_directory(directory) -> dict:
     checks["missing_files"] = missing
     checks["failures"] = [f"missing piece file {m}" for m in missing] + failures + checks["failures"]
     checks["passed"] = not checks["failures"]
+    checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
+                         f"{'all' if checks['all_closed'] else 'not all'} closed, "
+                         f"volume error {checks['volume_error']:+.3%}, "
+                         f"largest overlap {checks['max_overlap_mm3']:.3g} mm^3")
+    if raise_on_failure:
+        assert_passed(checks, str(directory))
     return checks
