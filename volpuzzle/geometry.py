@@ -1,0 +1,134 @@
+"""The one place that converts between manifold3d and trimesh and checks the engine's status.
+
+manifold3d reports failure through `status()` instead of raising, and an empty result can hide a failed
+operation; every helper here checks both and raises GeometryError naming the piece (`what`).
+"""
+
+import manifold3d
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from .errors import GeometryError
+
+_OPS = {"union": lambda a, b: a + b, "difference": lambda a, b: a - b, "intersection": lambda a, b: a ^ b}
+
+
+def _check(m, what, step):
+    status = m.status()
+    if status != manifold3d.Error.NoError:
+        raise GeometryError(f"{what}: the geometry engine failed at {step} (status {status.name})")
+    return m
+
+
+def manifold_from_mesh(vertices, faces, what, keep_faces=True):
+    """vertices (n, 3), faces (m, 3) -> Manifold, or GeometryError naming `what` and the engine's status.
+
+    keep_faces gives every triangle its own face id, so the engine never merges coplanar triangles:
+    a parameter-space box must keep its grid, since its vertices are later mapped through F.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.uint64)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise GeometryError(f"{what}: expected vertices (n, 3) and faces (m, 3), got {v.shape} and {f.shape}")
+    if not np.all(np.isfinite(v)):
+        raise GeometryError(f"{what}: the mesh has non-finite vertex coordinates")
+    face_id = np.arange(len(f), dtype=np.uint64) if keep_faces else None
+    m = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=v, tri_verts=f, face_id=face_id))
+    _check(m, what, "building a solid from its mesh")
+    if m.is_empty():
+        raise GeometryError(f"{what}: the mesh encloses no volume (empty solid from {len(f)} triangles)")
+    return m
+
+
+def to_trimesh(m):
+    """Manifold -> trimesh.Trimesh (float64, no processing: the engine's vertices and triangles as they are)."""
+    mesh = m.to_mesh64()
+    v = np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3]
+    f = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    return trimesh.Trimesh(vertices=v.copy(), faces=f.copy(), process=False)
+
+
+def from_trimesh(mesh, what):
+    """trimesh.Trimesh -> Manifold, with status checks."""
+    return manifold_from_mesh(mesh.vertices, mesh.faces, what)
+
+
+def boolean(a, b, op, what):
+    """a op b for op in 'union' | 'difference' | 'intersection'; checks the status of the result."""
+    if op not in _OPS:
+        raise GeometryError(f"{what}: unknown boolean operation {op!r} (expected one of {sorted(_OPS)})")
+    _check(a, what, f"{op} (first operand)")
+    _check(b, what, f"{op} (second operand)")
+    return _check(_OPS[op](a, b), what, op)
+
+
+def check_solid(mesh, what):
+    """Raise GeometryError unless mesh is watertight, consistently wound, one body and encloses positive volume."""
+    if len(mesh.faces) == 0:
+        raise GeometryError(f"{what}: the mesh has no triangles")
+    if not mesh.is_watertight:
+        raise GeometryError(f"{what}: the mesh is not closed (some edges do not have exactly two triangles)")
+    if not mesh.is_winding_consistent:
+        raise GeometryError(f"{what}: the mesh's triangles are not consistently oriented")
+    bodies = mesh.body_count
+    if bodies != 1:
+        raise GeometryError(f"{what}: the mesh has {bodies} separate bodies (expected one solid)")
+    vol = float(mesh.volume)
+    if not vol > 0:
+        raise GeometryError(f"{what}: the mesh encloses volume {vol:g} mm^3 (expected > 0: normals must face outward)")
+    return mesh
+
+
+def weld(vertices, faces, tol):
+    """Merge vertices closer than tol and drop triangles that then repeat a vertex, e.g. where a face of the
+    parameter box collapses to a line or a point (a cone's axis, a sphere's pole).
+
+    Each cluster keeps its lowest-index vertex, so the result depends only on the input order.
+    Also cancels pairs of triangles with the same vertices and opposite orientation: two faces of one cell
+    that coincide in space (a single cell closing on itself across a seam) enclose nothing.
+    Returns (vertices (k, 3), faces (j, 3)).
+    """
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(v) == 0:
+        return v.reshape(0, 3), f
+    rep = np.arange(len(v))
+    if tol > 0:
+        pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
+        if len(pairs):
+            # union-find over close pairs; the root is the smallest index of each cluster
+            parent = np.arange(len(v))
+
+            def root(i):
+                while parent[i] != i:
+                    parent[i] = parent[parent[i]]
+                    i = parent[i]
+                return i
+
+            for i, j in pairs:
+                ri, rj = root(i), root(j)
+                if ri != rj:
+                    parent[max(ri, rj)] = min(ri, rj)
+            rep = np.array([root(i) for i in range(len(v))])
+    f = rep[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    if len(f):
+        # a triangle and its reverse cancel; keep each oriented triangle once
+        rot = np.argmin(f, axis=1)
+        canon = np.stack([f[np.arange(len(f)), (rot + k) % 3] for k in range(3)], axis=1)
+        rev = canon[:, [0, 2, 1]]
+        keys = {tuple(t): i for i, t in enumerate(canon)}
+        keep = np.ones(len(f), dtype=bool)
+        for i, t in enumerate(rev):
+            j = keys.get(tuple(t))
+            if j is not None:
+                keep[i] = keep[j] = False
+        _, first = np.unique(canon, axis=0, return_index=True)
+        dup = np.ones(len(f), dtype=bool)
+        dup[first] = False
+        f = f[keep & ~dup]
+    used = np.unique(f)
+    remap = -np.ones(len(v), dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[f]
