@@ -34,7 +34,8 @@ def load_json(path):
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
-        what = "truncated" if e.pos >= len(text.rstrip()) else "invalid"
+        ends_early = e.pos >= len(text.rstrip()) or e.msg.startswith("Unterminated string")
+        what = "truncated" if ends_early else "invalid"
         raise fail(path, "", f"{what} JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
     except RecursionError:
         raise fail(path, "", "invalid JSON: nested too deeply") from None
