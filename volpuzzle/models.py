@@ -315,8 +315,8 @@ def _duck_radius(d):
         return height * np.exp(-(ang / width) ** 2)
 
     return (body + bump((0.55, 0, 1.0), 0.26, 0.38)    # head
-            + bump((1.0, 0, 0.95), 0.16, 0.16)         # beak
-            + bump((-1.0, 0, 0.55), 0.13, 0.22))       # tail
+            + bump((1.0, 0, 0.72), 0.17, 0.13)         # beak
+            + bump((-1.0, 0, 0.5), 0.15, 0.18))       # tail
 
 
 def _periodic_matrix(n, t, degree=3):
@@ -333,7 +333,7 @@ def duck_shell(size=120.0, thickness=8.0):
     u: the polar angle about the duck's left-right axis (collapsed at the two flank poles), v: the azimuth round
     the side profile through beak, head, back, tail and belly (closed, C2 across the seam), w: from the inner
     to the outer surface. Polynomial, bicubic by linear; meant for a 4 x 8 x 1 puzzle."""
-    n_u, n_v = 12, 16  # control rows (polar, clamped) and columns (azimuth, periodic before clamping)
+    n_u, n_v = 12, 24  # control rows (polar, clamped) and columns (azimuth, periodic before clamping)
     th = np.linspace(0, math.pi, 3 * n_u + 1)
     ph = np.arange(3 * n_v) / (3 * n_v)
     tt, pp = np.meshgrid(th, 2 * math.pi * ph, indexing="ij")
