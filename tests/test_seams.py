@@ -79,7 +79,7 @@ def test_a_slightly_open_ring_is_not_periodic():
     assert list(find_seams(opened, rel_tol=1e-4)) == [2]
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20, deadline=None, derandomize=True)
 @given(axis=st.integers(0, 2), swap=st.booleans(), f0=st.booleans(), f1=st.booleans(),
        pts=st.lists(st.tuples(*[st.floats(0, 1)] * 3), min_size=1, max_size=5))
 def test_seam_maps_are_inverse(axis, swap, f0, f1, pts):
