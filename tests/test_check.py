@@ -6,7 +6,8 @@ import trimesh
 from hypothesis import given, settings, strategies as st
 
 from volpuzzle.check import (assert_passed, candidate_pairs, check_directory, check_pieces, closed_problem,
-                             signed_volume)
+                             overlap_volume, shifted_overlap, signed_volume)
+from volpuzzle.geometry import manifold_from_mesh
 from volpuzzle.errors import GeometryError, VolpuzzleError
 
 
@@ -40,11 +41,32 @@ def test_moved_piece_overlaps_its_neighbour():
     pieces[0] = (pieces[0][0], moved)
     checks = check_pieces(pieces, 8000.0)
     assert not checks["passed"]
-    assert checks["max_overlap_mm3"] == pytest.approx(100.0, rel=1e-6)
+    assert abs(checks["max_overlap_mm3"] - 100.0) <= checks["overlap_error_bound_mm3"] <= 0.01
     assert checks["max_overlap_pair"] == ["p0-0-0", "p1-0-0"]
     assert any("overlap by" in f for f in checks["failures"])
     with pytest.raises(GeometryError, match="p0-0-0 and p1-0-0 overlap"):
         assert_passed(checks)
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+def test_shifted_overlap_is_within_its_bound(dx, dy):
+    pieces = split_box()
+    a = manifold_from_mesh(pieces[0][1].vertices, pieces[0][1].faces, "a")
+    b = manifold_from_mesh(pieces[4][1].vertices, pieces[4][1].faces, "b").translate((dx, dy, 0.0))
+    exact = overlap_volume(a, b)
+    assert exact == pytest.approx(max(0.0, -dx) * (10 - abs(dy)) * 10, abs=1e-9)
+    estimate, bound = shifted_overlap(a, b, 0.01)
+    assert abs(estimate - exact) <= bound + 1e-9 and bound <= 0.01 + 1e-12
+
+
+def test_exact_and_shifted_checks_agree():
+    pieces = split_box()
+    moved = pieces[0][1].copy().apply_translation([0, 0.5, 0.25])
+    pieces[0] = (pieces[0][0], moved)
+    fast, exact = check_pieces(pieces, 8000.0), check_pieces(pieces, 8000.0, exact_overlaps=True)
+    assert fast["max_overlap_pair"] == exact["max_overlap_pair"]
+    assert abs(fast["max_overlap_mm3"] - exact["max_overlap_mm3"]) <= fast["overlap_error_bound_mm3"]
 
 
 def test_open_mesh_is_not_closed():
