@@ -62,7 +62,8 @@ class Joint:
     center (3,): where the pin's axis crosses the face; direction (3,): unit vector along which the pin leaves
     pin_cell into hole_cell; uvw_pin (3,): the parameter of that crossing on the pin cell's face; uvw_hole (3,): the
     same point on the hole cell's face (differs across a seam); base_depth: how far the pin (and the hole's opening)
-    reaches back behind the face so that it stays attached on a curved face.
+    reaches back behind the face so that it stays attached on a curved face; jacobian_pin / jacobian_hole (3, 3):
+    dF/duvw at uvw_pin / uvw_hole, for the domain-space solids.
     """
 
     pin_cell: tuple
@@ -81,6 +82,8 @@ class Joint:
     uvw_pin: np.ndarray
     uvw_hole: np.ndarray
     base_depth: float
+    jacobian_pin: np.ndarray = None
+    jacobian_hole: np.ndarray = None
 
     @property
     def segments(self):
@@ -217,7 +220,11 @@ def default_sizes(tiling, fmap, _geo=None):
 # Placement
 
 
-_KS = list(product((-1, 0, 1), repeat=2))  # the 9 offset choices (k_b, k_c) of one axis
+# The offset choices (k_b, k_c) of one axis, in steps of the separation: half steps let two joints sit either side
+# of a face's centre line.
+_KS = list(product((-1.0, -0.5, 0.0, 0.5, 1.0), repeat=2))
+_NK = len(_KS)
+_KCOST = np.array([(sum(x != 0 for x in k), sum(abs(x) for x in k)) for k in _KS])
 
 
 @dataclass(frozen=True)
@@ -289,7 +296,7 @@ def _length_problems(tiling, geo, sizes, intr):
 
 
 def _face_fractions(tiling, f, ks, delta):
-    """For each offset choice k (9,), the joint's fractions (3,) in the lower cell and in the upper cell."""
+    """For each offset choice k, the joint's fractions (3,) and parameters (3,) in the lower and in the upper cell."""
     a = f.axis
     b, c = _cyclic(a)
     low = tiling.cells[f.lower]
@@ -315,7 +322,7 @@ def _search(tiling, geo, sizes, intr):
     shortest = np.min(np.array(list(geo.lengths.values())), axis=0)  # (3,)
     delta = sep / shortest  # one offset step in fractions, enough in the shortest cell
     fr_low, fr_up, uvws = {}, {}, {}
-    allowed = {a: np.ones(9, bool) for a in range(3)}
+    allowed = {a: np.ones(_NK, bool) for a in range(3)}
     for n, f in enumerate(tiling.faces):
         fl, fu, ul, uu = _face_fractions(tiling, f, _KS, delta)
         fr_low[n], fr_up[n], uvws[n] = fl, fu, (ul, uu)
@@ -326,7 +333,7 @@ def _search(tiling, geo, sizes, intr):
                 room = np.minimum(fr[:, x], 1.0 - fr[:, x]) * ln[x]
                 allowed[f.axis] &= room >= reach + wall - 1e-9
     # pair tables: ok[(a1, a2)][k1, k2] for a1 < a2, over every piece
-    ok = {(0, 1): np.ones((9, 9), bool), (0, 2): np.ones((9, 9), bool), (1, 2): np.ones((9, 9), bool)}
+    ok = {pair: np.ones((_NK, _NK), bool) for pair in ((0, 1), (0, 2), (1, 2))}
     for idx, slots in intr.items():
         ln = geo.lengths[idx]
         items = []
@@ -348,22 +355,18 @@ def _search(tiling, geo, sizes, intr):
                     a, side, _, depth = s
                     f_other = other[2][:, a]
                     level = f_other if side == -1 else 1.0 - f_other
-                    good = level * ln[a] - reach - wall >= depth - 1e-9  # (9,) over the other's k
+                    good = level * ln[a] - reach - wall >= depth - 1e-9  # (_NK,) over the other's k
                     return good[None, :] if along_rows else good[:, None]
 
                 ok[(a1, a2)] &= lateral | clear(s1, s2, True) | clear(s2, s1, False)
-    best = None
-    for k in product(range(9), repeat=3):
-        if not all(allowed[a][k[a]] for a in range(3)):
-            continue
-        if not (ok[(0, 1)][k[0], k[1]] and ok[(0, 2)][k[0], k[2]] and ok[(1, 2)][k[1], k[2]]):
-            continue
-        cost = (sum(x != 0 for a in range(3) for x in _KS[k[a]]), sum(abs(x) for a in range(3) for x in _KS[k[a]]))
-        if best is None or cost < best[0]:
-            best = (cost, k)
-    if best is None:
+    feasible = (allowed[0][:, None, None] & allowed[1][None, :, None] & allowed[2][None, None, :]
+                & ok[(0, 1)][:, :, None] & ok[(0, 2)][:, None, :] & ok[(1, 2)][None, :, :])
+    if not feasible.any():
         return None
-    k = best[1]
+    ks = np.argwhere(feasible)
+    cost = _KCOST[ks].sum(axis=1)  # (n, 2): offsets used, then their size
+    best = ks[np.lexsort((cost[:, 1], cost[:, 0]))[0]]
+    k = best
     pattern = {a: _KS[k[a]] for a in range(3)}
     placed = {n: (uvws[n][0][k[f.axis]], uvws[n][1][k[f.axis]]) for n, f in enumerate(tiling.faces)}
     return pattern, placed
@@ -415,7 +418,7 @@ def plan_joints(tiling, fmap, joint_spec=None):
     r_given = getattr(joint_spec, "radius", None) if joint_spec is not None else None
     l_given = getattr(joint_spec, "length", None) if joint_spec is not None else None
     r_def, l_def = default_sizes(tiling, fmap, geo)
-    sizes = _sizes_from(joint_spec, r_given if r_given is not None else r_def, l_given if l_given is not None else l_def)
+    sizes = _sizes_from(joint_spec, r_def if r_given is None else r_given, l_def if l_given is None else l_given)
     problems = []
     for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
                         ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12)):
@@ -466,12 +469,14 @@ def plan_joints(tiling, fmap, joint_spec=None):
         nrm = sign * nrm / max(np.linalg.norm(nrm), 1e-300)
         dirs.append(nrm)
     bases = _actual_bases(fmap, faces, uvw_low, x0, jac, dirs, sizes, geo)
+    _, jac_up = fmap.evaluate_with_jacobian(uvw_up)
     for n, f in enumerate(faces):
         joints.append(Joint(
             pin_cell=tuple(f.lower), hole_cell=tuple(f.upper), axis=f.axis, across_seam=f.seam is not None,
             center=_readonly(x0[n]), direction=_readonly(dirs[n]), radius=sizes.radius, length=sizes.length,
             clearance=sizes.clearance, axial_clearance=sizes.axial_clearance, shape=sizes.shape, style=sizes.style,
-            space=space, uvw_pin=_readonly(uvw_low[n]), uvw_hole=_readonly(uvw_up[n]), base_depth=bases[n]))
+            space=space, uvw_pin=_readonly(uvw_low[n]), uvw_hole=_readonly(uvw_up[n]), base_depth=bases[n],
+            jacobian_pin=_readonly(jac[n]), jacobian_hole=_readonly(jac_up[n])))
     return joints
 
 
@@ -591,33 +596,32 @@ def dowel_solid(j):
     return _checked(s.transform(_frame(j)), f"dowel between {piece_id(j.pin_cell)} and {piece_id(j.hole_cell)}")
 
 
-def _domain_transform(j, fmap, uvw, flip=False):
-    """3x4 map local -> parameters: the physical frame, then the inverse Jacobian at uvw (first-order F^-1)."""
-    _, jac = fmap.evaluate_with_jacobian(np.asarray(uvw, dtype=float)[None])
-    jinv = np.linalg.inv(jac[0])
+def _domain_transform(j, uvw, jac, flip=False):
+    """3x4 map local -> parameters: the physical frame, then the inverse Jacobian at uvw (F^-1 to first order)."""
     fr = _frame(j, flip=flip)
     m = np.zeros((3, 4))
-    m[:, :3] = jinv @ fr[:, :3]
+    m[:, :3] = np.linalg.inv(np.asarray(jac, dtype=float)) @ fr[:, :3]
     m[:, 3] = uvw
     return m
 
 
-def pin_solid_domain(j, fmap):
+def pin_solid_domain(j):
     """The pin in parameter space (Manifold, uvw units), to be composed with the pin cell through F. Sized by the
     Jacobian at the face point: about the requested mm there, distorted away from it (the paper's Fig. 16)."""
     if j.style != "pin":
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)}: style {j.style} has no pin")
-    s = _local_solid(j, j.radius, -j.base_depth, j.length).transform(_domain_transform(j, fmap, j.uvw_pin))
-    return _checked(s, f"domain pin of {piece_id(j.pin_cell)}")
+    m = _domain_transform(j, j.uvw_pin, j.jacobian_pin)
+    solid = _local_solid(j, j.radius, -j.base_depth, j.length).transform(m)
+    return _checked(solid, f"domain pin of {piece_id(j.pin_cell)}")
 
 
-def hole_solid_domain(j, cell_index, fmap):
+def hole_solid_domain(j, cell_index):
     """The hole in cell_index's parameter frame (Manifold, uvw units); across a seam the hole cell's own parameters."""
     idx = tuple(cell_index)
     if idx == j.hole_cell:
-        m = _domain_transform(j, fmap, j.uvw_hole)
+        m = _domain_transform(j, j.uvw_hole, j.jacobian_hole)
     elif idx == j.pin_cell and j.style == "dowel":
-        m = _domain_transform(j, fmap, j.uvw_pin, flip=True)
+        m = _domain_transform(j, j.uvw_pin, j.jacobian_pin, flip=True)
     else:
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)} makes no hole in {piece_id(idx)}")
     return _checked(_hole_local(j).transform(m), f"domain hole in {piece_id(idx)}")

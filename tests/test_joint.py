@@ -1,0 +1,380 @@
+"""joint: at most three pins and three holes per piece, joint solids that never meet inside a piece, pins that fit
+their holes with the asked clearance in mm, seam-crossing joints, and the fit errors."""
+
+from collections import Counter
+from types import SimpleNamespace
+
+import manifold3d as m3
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volpuzzle import joint as J
+from volpuzzle.errors import SpecError
+from volpuzzle.mapping import Map
+from volpuzzle.spline import Volume
+from volpuzzle.spline.seams import find_seams
+from volpuzzle.tile import tile
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Small models built here (the real builtins live in volpuzzle.models)
+
+
+def _box(sx=40.0, sy=30.0, sz=20.0):
+    cp = np.zeros((2, 2, 2, 3))
+    for i, j, k in np.ndindex(2, 2, 2):
+        cp[i, j, k] = [i * sx, j * sy, k * sz]
+    return Volume((1, 1, 1), ([0, 0, 1, 1],) * 3, cp)
+
+
+def _bent(mirror=False):
+    """A thick quarter ring, strongly curved: u along a 90-degree cubic arc, v radial (20..50 mm), w height 30 mm."""
+    k = 0.5523
+    arc = np.array([[1, 0], [1, k], [k, 1], [0, 1]], float)
+    cp = np.zeros((4, 2, 2, 3))
+    for i, j, l in np.ndindex(4, 2, 2):
+        r = (20.0, 50.0)[j]
+        cp[i, j, l] = [r * arc[i, 0], r * arc[i, 1], 30.0 * l]
+    if mirror:
+        cp[..., 0] *= -1
+    return Volume((3, 1, 1), ([0, 0, 0, 0, 1, 1, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1]), cp)
+
+
+def _ring(twist=0.0, major=40.0, side=16.0, n=17):
+    """A square-section ring around z, periodic in w; the section turns by `twist` radians once round.
+
+    The control points sample the exact shape at the Greville abscissae (a quasi-interpolant), and the last slice
+    is the first one turned, so the seam closes exactly.
+    """
+    knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, n - 2), [1, 1, 1]])
+    grev = np.array([knots[i + 1:i + 4].mean() for i in range(n)])
+    cp = np.zeros((2, 2, n, 3))
+    for i, j, l in np.ndindex(2, 2, n):
+        s, t = (i - 0.5) * side, (j - 0.5) * side
+        phi, th = 2 * np.pi * grev[l], twist * grev[l]
+        if l == n - 1:
+            phi = 0.0
+        er = np.array([np.cos(phi), np.sin(phi), 0.0])
+        ez = np.array([0.0, 0.0, 1.0])
+        cp[i, j, l] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
+    return Volume((1, 1, 3), ([0, 0, 1, 1], [0, 0, 1, 1], knots), cp)
+
+
+def _map(vol):
+    _, jac = vol.evaluate_with_derivatives(np.array([[0.5, 0.5, 0.5]]))
+    return Map(vol, None, int(np.sign(np.linalg.det(jac[0]))))
+
+
+def _tiling(vol, grid, periodic=()):
+    seams = find_seams(vol) if periodic else None
+    return tile(vol, grid, periodic=periodic, seams=seams)
+
+
+def _spec(**kw):
+    base = dict(style="pin", shape="cylinder", radius=None, length=None, clearance=0.15, axial_clearance=0.3,
+                space="physical")
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def _roles(joints, tiling):
+    return {idx: Counter(role for _, role in J.pieces_joints(joints, idx)) for idx in tiling.cells}
+
+
+def _body(fmap, cell, n=12):
+    """The mapped cell box as a closed Manifold: a refined cube warped through F (mirrored first for a left-handed F,
+    so that the result is positively oriented)."""
+    lo, hi = cell.box
+    flip = fmap.orientation < 0
+
+    def warp(p):
+        p = np.array(p, dtype=float)
+        if flip:
+            p[:, 0] = 1.0 - p[:, 0]
+        return fmap.evaluate(lo + p * (hi - lo))
+
+    body = m3.Manifold.cube([1.0, 1.0, 1.0]).refine(n).warp_batch(warp)
+    assert body.status() == m3.Error.NoError and body.volume() > 0
+    return body
+
+
+def _vol(m):
+    assert m.status() == m3.Error.NoError
+    return m.volume()
+
+
+def _axial_and_radial(solid, j, flip=False):
+    """Vertices of a joint solid as (distance along the joint's direction from its centre, distance from its axis)."""
+    v = np.asarray(solid.to_mesh().vert_properties)[:, :3] - j.center
+    d = j.direction * (-1 if flip else 1)
+    z = v @ d
+    return z, np.linalg.norm(v - z[:, None] * d, axis=1)
+
+
+MODELS = {
+    "box": lambda: (_box(), ()),
+    "bent": lambda: (_bent(), ()),
+    "mirrored": lambda: (_bent(mirror=True), ()),
+    "torus": lambda: (_ring(), (2,)),
+    "twisted": lambda: (_ring(twist=np.pi / 2), (2,)),
+}
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Counting
+
+
+@pytest.mark.parametrize("name,grid", [("box", (1, 1, 1)), ("box", (2, 1, 1)), ("box", (2, 2, 2)), ("box", (3, 3, 3)),
+                                       ("bent", (3, 2, 2)), ("mirrored", (2, 2, 2)), ("torus", (2, 2, 4)),
+                                       ("twisted", (2, 2, 4)), ("twisted", (2, 2, 1))])
+def test_one_joint_per_face_and_at_most_three_pins_and_holes(name, grid):
+    vol, periodic = MODELS[name]()
+    t = _tiling(vol, grid, periodic)
+    joints = J.plan_joints(t, _map(vol), _spec())
+    assert len(joints) == len(t.faces)
+    assert {(j.pin_cell, j.hole_cell, j.axis) for j in joints} == {(f.lower, f.upper, f.axis) for f in t.faces}
+    for idx, c in _roles(joints, t).items():
+        assert c["pin"] <= 3 and c["hole"] <= 3, (idx, c)
+
+
+@settings(max_examples=12, deadline=None, derandomize=True)
+@given(st.tuples(st.integers(1, 3), st.integers(1, 3), st.integers(1, 3)))
+def test_at_most_three_pins_and_holes_over_grids(grid):
+    vol = _box(60.0, 50.0, 40.0)
+    t = _tiling(vol, grid)
+    joints = J.plan_joints(t, _map(vol), _spec())
+    assert len(joints) == len(t.faces)
+    for c in _roles(joints, t).values():
+        assert c["pin"] <= 3 and c["hole"] <= 3
+    for j in joints:  # pins point along +axis: the pin cell is the lower one
+        assert j.pin_cell[j.axis] + 1 == j.hole_cell[j.axis]
+
+
+@settings(max_examples=4, deadline=None, derandomize=True)
+@given(st.integers(1, 2), st.integers(2, 4))
+def test_at_most_three_pins_and_holes_on_a_twisted_ring(n, along):
+    vol = _ring(twist=np.pi / 2)
+    t = _tiling(vol, (n, n, along), (2,))
+    joints = J.plan_joints(t, _map(vol), _spec())
+    for c in _roles(joints, t).values():
+        assert c["pin"] <= 3 and c["hole"] <= 3
+
+
+def test_style_none_gives_no_joints():
+    vol = _box()
+    assert J.plan_joints(_tiling(vol, (2, 2, 2)), _map(vol), _spec(style="none")) == []
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The solids, proven on the real geometry
+
+
+def _cell_solids(joints, idx):
+    out = []
+    for j, role in J.pieces_joints(joints, idx):
+        if role == "pin":
+            out.append((j, role, J.pin_solid(j)))
+        else:
+            out.append((j, role, J.hole_solid(j, idx)))
+    return out
+
+
+@pytest.mark.parametrize("name,grid,spec", [
+    ("box", (2, 2, 2), {}),
+    ("box", (2, 2, 2), {"radius": 2.5, "length": 6.0}),
+    ("box", (3, 3, 3), {"radius": 1.2, "length": 2.5, "shape": "snap"}),
+    ("bent", (2, 2, 2), {}),
+    ("bent", (3, 2, 2), {"radius": 2.0, "length": 4.0}),
+    ("mirrored", (2, 2, 2), {"shape": "snap"}),
+    ("twisted", (2, 2, 4), {}),
+    ("twisted", (2, 2, 4), {"radius": 2.0, "length": 4.0}),
+    ("torus", (2, 2, 2), {"style": "dowel"}),
+])
+def test_joint_solids_never_meet_inside_a_piece_and_holes_stay_inside(name, grid, spec):
+    vol, periodic = MODELS[name]()
+    fmap = _map(vol)
+    t = _tiling(vol, grid, periodic)
+    joints = J.plan_joints(t, fmap, _spec(**spec))
+    for idx, cell in t.cells.items():
+        body = _body(fmap, cell)
+        parts = [(j, role, s ^ body) for j, role, s in _cell_solids(joints, idx)]
+        for a in range(len(parts)):
+            for b in range(a + 1, len(parts)):
+                overlap = _vol(parts[a][2] ^ parts[b][2])
+                assert overlap < 1e-6, (name, idx, parts[a][0].axis, parts[b][0].axis, overlap)
+        for j, role, s in _cell_solids(joints, idx):
+            if role != "hole":
+                continue
+            flip = idx == j.pin_cell  # a dowel hole in the pin cell runs backwards
+            d = -j.direction if flip else j.direction
+            # past the opening (the face may bulge by up to base_depth) the hole is wholly inside the piece
+            deep = s.trim_by_plane(d, float(np.dot(d, j.center)) + j.base_depth)
+            outside = _vol(deep - body)
+            assert outside < 1e-4 * _vol(deep), (name, idx, j.axis, outside)
+
+
+@pytest.mark.parametrize("name,spec", [("box", {"radius": 2.5, "length": 6.0}), ("bent", {"radius": 2.0}),
+                                       ("mirrored", {"radius": 1.5, "clearance": 0.2}), ("twisted", {})])
+def test_sizes_hold_in_mm_and_pins_fit_holes(name, spec):
+    vol, periodic = MODELS[name]()
+    t = _tiling(vol, (2, 2, 2) if not periodic else (2, 2, 4), periodic)
+    joints = J.plan_joints(t, _map(vol), _spec(**spec))
+    for j in joints:
+        pin, hole = J.pin_solid(j), J.hole_solid(j, j.hole_cell)
+        assert _vol(pin - hole) < 1e-6 * _vol(pin)
+        z, rad = _axial_and_radial(pin, j)
+        zh, radh = _axial_and_radial(hole, j)
+        assert abs(z.max() - j.length) <= 0.05 * j.length
+        assert abs(rad.max() - j.radius) <= 0.05 * j.radius
+        assert abs(zh.max() - j.length - j.axial_clearance) <= 0.05 * j.axial_clearance
+        assert abs((radh.max() - rad.max()) - j.clearance) <= 0.05 * j.clearance
+        # the same through volumes: the cylinders' mean radii over the pin's length
+        seg_p = pin.trim_by_plane(j.direction, float(j.direction @ j.center))
+        seg_h = hole.trim_by_plane(j.direction, float(j.direction @ j.center)).trim_by_plane(
+            -j.direction, -float(j.direction @ j.center) - j.length)
+        r_p = np.sqrt(_vol(seg_p) / (np.pi * j.length))
+        r_h = np.sqrt(_vol(seg_h) / (np.pi * j.length))
+        assert abs(r_p - j.radius) <= 0.05 * j.radius
+        assert abs((r_h - r_p) - j.clearance) <= 0.05 * j.clearance
+    if "radius" in spec:
+        assert all(j.radius == spec["radius"] for j in joints)
+
+
+def test_snap_pin_swells_and_necks_and_fits_its_hole():
+    vol = _box()
+    t = _tiling(vol, (2, 1, 1))
+    (j,) = J.plan_joints(t, _map(vol), _spec(shape="snap", radius=2.0, length=6.0))
+    pin, hole = J.pin_solid(j), J.hole_solid(j, j.hole_cell)
+    assert _vol(pin - hole) < 1e-6 * _vol(pin)
+    z, rad = _axial_and_radial(pin, j)
+    assert abs(rad.max() - J.SNAP_SWELL * j.radius) <= 0.05 * j.radius
+    near_tip = (z > 0.85 * j.length) & (z < 0.95 * j.length)
+    assert rad[near_tip].max() < j.radius
+    assert abs(z.max() - j.length) < 1e-6
+
+
+def test_dowel_holes_in_both_pieces_hold_the_dowel():
+    vol = _box()
+    t = _tiling(vol, (2, 1, 1))
+    (j,) = J.plan_joints(t, _map(vol), _spec(style="dowel", radius=2.0, length=5.0))
+    assert [r for _, r in J.pieces_joints([j], j.pin_cell)] == ["hole"]
+    with pytest.raises(Exception):
+        J.pin_solid(j)
+    dowel = J.dowel_solid(j)
+    holes = J.hole_solid(j, j.pin_cell) + J.hole_solid(j, j.hole_cell)
+    assert abs(_vol(dowel) - np.pi * 4.0 * 10.0) < 0.05 * np.pi * 40.0
+    assert _vol(dowel - holes) < 1e-6
+    z, _ = _axial_and_radial(J.hole_solid(j, j.pin_cell), j, flip=True)
+    assert abs(z.max() - j.length - j.axial_clearance) < 1e-6
+
+
+def test_domain_pins_compose_to_about_the_asked_size():
+    vol = _bent()
+    fmap = _map(vol)
+    t = _tiling(vol, (2, 2, 2))
+    joints = J.plan_joints(t, fmap, _spec(space="domain", radius=1.5, length=3.0))
+    for j in joints[:4]:
+        pin_d = J.pin_solid_domain(j)
+        composed = pin_d.warp_batch(lambda p: fmap.evaluate(np.array(p)))
+        want = np.pi * j.radius ** 2 * (j.length + j.base_depth)
+        assert abs(abs(_vol(composed)) - want) < 0.1 * want
+        hole_d = J.hole_solid_domain(j, j.hole_cell)
+        assert _vol(pin_d - hole_d) < 1e-6 * _vol(pin_d)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Directions and seams
+
+
+@pytest.mark.parametrize("name", ["box", "bent", "mirrored", "torus", "twisted"])
+def test_directions_are_unit_and_point_into_the_hole_piece(name):
+    vol, periodic = MODELS[name]()
+    fmap = _map(vol)
+    t = _tiling(vol, (2, 2, 3) if periodic else (2, 2, 2), periodic)
+    joints = J.plan_joints(t, fmap, _spec())
+    for j in joints:
+        assert abs(np.linalg.norm(j.direction) - 1) < 1e-9
+        x_pin, jac_pin = fmap.evaluate_with_jacobian(j.uvw_pin[None])
+        x_hole, jac_hole = fmap.evaluate_with_jacobian(j.uvw_hole[None])
+        assert np.allclose(x_pin[0], j.center, atol=1e-6) and np.allclose(x_hole[0], j.center, atol=1e-6)
+        # the hole cell lies on the +axis side of the face in its own parameters
+        assert j.direction @ jac_hole[0][:, j.axis] > 0
+        assert j.direction @ jac_pin[0][:, j.axis] > 0
+        # perpendicular to the mapped face
+        b, c = [x for x in range(3) if x != j.axis]
+        assert abs(j.direction @ jac_pin[0][:, b]) < 1e-6 * np.linalg.norm(jac_pin[0][:, b])
+        assert abs(j.direction @ jac_pin[0][:, c]) < 1e-6 * np.linalg.norm(jac_pin[0][:, c])
+
+
+@pytest.mark.parametrize("twist", [0.0, np.pi / 2])
+def test_joints_cross_the_seam_and_pair_the_right_cells(twist):
+    vol = _ring(twist=twist)
+    t = _tiling(vol, (2, 2, 4), (2,))
+    joints = J.plan_joints(t, _map(vol), _spec())
+    seam = [j for j in joints if j.across_seam]
+    assert len(seam) == 4
+    for j in seam:
+        assert j.pin_cell[2] == 3 and j.hole_cell[2] == 0
+        pin_box, hole_box = t.cells[j.pin_cell].box, t.cells[j.hole_cell].box
+        assert np.isclose(j.uvw_pin[2], pin_box[1, 2]) and np.isclose(j.uvw_hole[2], hole_box[0, 2])
+        assert np.all(j.uvw_pin >= pin_box[0] - 1e-12) and np.all(j.uvw_pin <= pin_box[1] + 1e-12)
+        assert np.all(j.uvw_hole >= hole_box[0] - 1e-12) and np.all(j.uvw_hole <= hole_box[1] + 1e-12)
+        if twist == 0:
+            assert j.pin_cell[:2] == j.hole_cell[:2]
+    if twist:
+        # turned by 90 degrees: (i, j) meets (1 - j, i)
+        assert {(j.pin_cell[:2], j.hole_cell[:2]) for j in seam} == {((i, k), (1 - k, i)) for i in (0, 1)
+                                                                         for k in (0, 1)}
+
+
+def test_report_has_the_spec_keys():
+    vol = _box()
+    (j,) = J.plan_joints(_tiling(vol, (2, 1, 1)), _map(vol), _spec(radius=2.5, length=6))
+    r = j.to_report()
+    for key in ("pin_piece", "hole_piece", "axis", "center_mm", "direction", "radius_mm", "length_mm", "clearance_mm"):
+        assert key in r
+    assert (r["pin_piece"], r["hole_piece"], r["axis"]) == ("p0-0-0", "p1-0-0", "u")
+    assert r["radius_mm"] == 2.5 and r["length_mm"] == 6 and r["direction"] == [1.0, 0.0, 0.0]
+
+
+def test_default_sizes_follow_the_smallest_face_and_fit():
+    vol = _box()
+    t = _tiling(vol, (2, 2, 2))
+    r, length = J.default_sizes(t, _map(vol))
+    assert r == pytest.approx(0.12 * 10.0, abs=0.1)  # the smallest face is 15 x 10 mm
+    assert r <= length <= 0.35 * 10.0 + 1e-9
+    assert J.plan_joints(t, _map(vol), _spec())[0].radius == r
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Fit errors, with what would fit
+
+
+def _expected_at_most(msg):
+    return float(msg.split("expected at most ")[1].rstrip(")"))
+
+
+def test_a_pin_too_wide_for_its_face_says_what_would_fit():
+    vol = _box()
+    t = _tiling(vol, (2, 1, 1))
+    with pytest.raises(SpecError) as e:
+        J.plan_joints(t, _map(vol), _spec(radius=12.0, length=4.0))
+    msg = str(e.value)
+    assert msg.startswith("joints.radius: a pin of radius 12 does not fit the face between p0-0-0 and p1-0-0 (got 12,")
+    best = _expected_at_most(msg)
+    assert 0 < best < 12
+    assert J.plan_joints(t, _map(vol), _spec(radius=best, length=4.0))
+
+
+def test_a_pin_too_long_for_its_piece_says_what_would_fit():
+    vol = _box()
+    t = _tiling(vol, (2, 1, 1))
+    with pytest.raises(SpecError) as e:
+        J.plan_joints(t, _map(vol), _spec(radius=2.0, length=25.0))
+    msg = str(e.value)
+    assert msg.startswith("joints.length: a pin of length 25 does not fit piece p")
+    assert "along u (got 25, expected at most" in msg
+    best = _expected_at_most(msg)
+    assert 0 < best < 20
+    assert J.plan_joints(t, _map(vol), _spec(radius=2.0, length=best))
