@@ -434,3 +434,26 @@ def test_error_patch_out_of_range():
 
 def test_errors_are_volpuzzle_errors():
     assert issubclass(ModelError, VolpuzzleError)
+
+
+def test_error_patch_not_an_integer():
+    msg = model_error(DATA / "gismo_water_passage_3p.xml", patch="1")
+    assert "patch" in msg and "expected an integer from 0 to 2" in msg
+
+
+def test_error_xml_root_not_gismo(tmp_path):
+    msg = model_error(write(tmp_path, "m.xml", "<svg><g/></svg>"))
+    assert "<xml> root" in msg and "<svg>" in msg
+
+
+def test_error_scalar_geomdl_volume(tmp_path):
+    d = json.loads((DATA / "geomdl_twisted_pipe.json").read_text())
+    d["shape"]["data"][0]["dimension"] = 1
+    msg = model_error(write(tmp_path, "m.json", d))
+    assert "dimension" in msg and "scalar" in msg and "expected dimension 3" in msg
+
+
+def test_error_gismo_unknown_number_format(tmp_path):
+    text = (DATA / "gismo_twisted_pipe.xml").read_text().replace('geoDim="3"', 'geoDim="3" format="B64Float16"')
+    msg = model_error(write(tmp_path, "m.xml", text))
+    assert "coefs" in msg and "'B64Float16'" in msg and "B64Float64" in msg

@@ -189,15 +189,13 @@ def _read(path):
 
 
 def _pick(path, vols, patch):
-    try:
-        k = int(patch)
-    except (TypeError, ValueError):
-        raise ModelError(f"{path}: patch: expected an integer, got {patch!r}") from None
-    if isinstance(patch, bool) or k != patch or not 0 <= k < len(vols):
-        n = len(vols)
-        raise ModelError(f"{path}: patch: {patch!r} is out of range; the file has {n} patch{'es' if n != 1 else ''} "
+    n = len(vols)
+    if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)):
+        raise ModelError(f"{path}: patch: expected an integer from 0 to {n - 1}, got {patch!r}")
+    if not 0 <= patch < n:
+        raise ModelError(f"{path}: patch: {int(patch)} is out of range; the file has {n} patch{'es' if n != 1 else ''} "
                          f"(expected 0 to {n - 1})")
-    return vols[k]
+    return vols[int(patch)]
 
 
 def read_patches(path):

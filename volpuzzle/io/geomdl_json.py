@@ -18,7 +18,7 @@ EXTENSION_FALLBACK = False
 
 
 def detect(path, head):
-    return head.lstrip()[:1] == b"{" and b'"shape"' in head
+    return head.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] == b"{" and b'"shape"' in head
 
 
 def _int(path, label, key, d):

@@ -23,7 +23,7 @@ _PT = re.compile(r"^([EP])(\d+)$", re.I)
 
 
 def detect(path, head):
-    text = head.lstrip()[:4096].upper()
+    text = re.sub(rb"(?m)^\s*#.*$", b"", head[:8192]).lstrip().upper()
     return text.startswith(b"[") and (b"[OBJECT" in text or b"TRIVAR" in text or b"CURVE" in text
                                       or b"SURFACE" in text)
 

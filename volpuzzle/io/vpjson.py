@@ -20,7 +20,7 @@ VERSION = 1
 
 
 def detect(path, head):
-    return head.lstrip()[:1] == b"{" and FORMAT.encode() in head
+    return head.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] == b"{" and FORMAT.encode() in head
 
 
 def load_json(path):
