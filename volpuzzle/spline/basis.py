@@ -10,9 +10,15 @@ def find_span(knots, degree, t):
     """
     knots = np.asarray(knots, dtype=float)
     t = np.asarray(t, dtype=float)
-    n = len(knots) - degree - 1  # number of control points
     span = np.searchsorted(knots, t, side="right") - 1
-    return np.clip(span, degree, n - 1)
+    return np.clip(span, degree, last_span(knots, degree))
+
+
+def last_span(knots, degree):
+    """Index of the last non-empty knot span of the domain (so t == end knot never lands in an empty span)."""
+    knots = np.asarray(knots, dtype=float)
+    n = len(knots) - degree - 1  # number of control points
+    return int(np.searchsorted(knots, knots[n], side="left") - 1)
 
 
 def basis_functions(knots, degree, t, span=None):
@@ -78,3 +84,23 @@ def basis_derivatives(knots, degree, t, order, span=None):
         ders[:, k, :] *= fac
         fac *= p - k
     return ders
+
+
+def basis_matrix(knots, degree, t, order=0):
+    """Dense basis matrices for a tensor grid: t (a,) -> (order+1, a, n) with [k, i, j] = N_j^(k)(t_i).
+
+    Parameters are clamped to the domain. Dense is fine here: grids are contracted axis by axis, so the
+    cost is a*n per axis, small next to the final a*b*c contraction.
+    """
+    knots = np.asarray(knots, dtype=float)
+    p = int(degree)
+    n = len(knots) - p - 1
+    t = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), knots[p], knots[n])
+    span = find_span(knots, p, t)
+    ders = basis_derivatives(knots, p, t, order, span)  # (a, order+1, p+1)
+    out = np.zeros((order + 1, t.shape[0], n))
+    cols = span[:, None] - p + np.arange(p + 1)
+    rows = np.broadcast_to(np.arange(t.shape[0])[:, None], cols.shape)
+    for k in range(order + 1):
+        out[k, rows, cols] = ders[:, k, :]
+    return out

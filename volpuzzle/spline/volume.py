@@ -3,12 +3,39 @@
 Control points are Cartesian, shape (n_u, n_v, n_w, 3); weights, when present, (n_u, n_v, n_w).
 """
 
+import threading
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from ..errors import ModelError
 from . import basis
+from . import knots as knots_mod
+
+_PARALLEL_MIN = 4096  # points; below this the serial kernel is faster than waking threads
+_TINY = 256  # points; below this, and before the compiled kernels are loaded, use numpy
+_LOADED = set()
+_FAST = []
+
+
+def _fast_module():
+    """The numba kernels, imported lazily (None when numba is unavailable: the numpy path is used)."""
+    if not _FAST:
+        try:
+            from . import _fast
+        except ImportError:  # pragma: no cover - numba is a dependency, but degrade rather than fail
+            _fast = None
+        _FAST.append(_fast)
+    return _FAST[0]
+
+
+def _axis_index(axis):
+    if axis in (0, 1, 2):
+        return int(axis)
+    if isinstance(axis, str) and axis in AXES:
+        return AXES.index(axis)
+    raise ModelError(f"axis: expected 0, 1, 2 or 'u', 'v', 'w', got {axis!r}")
 
 AXES = "uvw"
 
@@ -135,62 +162,186 @@ class Volume:
         return cls(degrees, knots, pts, None if np.allclose(w, 1.0, rtol=0, atol=1e-14) else w)
 
     # --- evaluation ---------------------------------------------------------------------------------------
+    @cached_property
+    def _net(self):
+        # Contiguous control net for the kernels: Cartesian (d=3) when polynomial, homogeneous (d=4) when
+        # rational, so polynomial volumes skip a quarter of the work and the division.
+        net = self.homogeneous() if self.is_rational else self.control_points
+        return np.ascontiguousarray(net, dtype=float)
+
+    @cached_property
+    def _last_spans(self):
+        return tuple(basis.last_span(k, p) for k, p in zip(self.knots, self.degrees))
+
     def _check_uvw(self, uvw):
         uvw = np.asarray(uvw, dtype=float)
         if uvw.ndim != 2 or uvw.shape[1] != 3:
             raise ValueError(f"uvw must have shape (n, 3), got {uvw.shape}")
         return uvw
 
-    def _local(self, uvw, order):
-        """Basis values (and derivatives) per axis plus the span indices."""
-        out = []
+    def _kernel(self, uvw, want_der):
+        """Homogeneous (or Cartesian) sums at scattered points: (n, d) and, if asked, (n, d, 3)."""
+        n = uvw.shape[0]
+        d = self._net.shape[3]
+        # Small batches: threads cost more than they save; off the main thread: stay re-entrant.
+        parallel = n >= _PARALLEL_MIN and threading.current_thread() is threading.main_thread()
+        kind = "parallel" if parallel else "serial"
+        # A tiny first call should not pay for loading compiled code (seconds): numpy until it is loaded.
+        if n < _TINY and kind not in _LOADED:
+            return self._numpy_sums(uvw, want_der)
+        fast = _fast_module()
+        if fast is None:
+            return self._numpy_sums(uvw, want_der)
+        _LOADED.add(kind)
+        uvw = np.ascontiguousarray(uvw, dtype=float)
+        out = np.empty((n, d))
+        der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
+        fn = fast.eval_parallel if parallel else fast.eval_serial
+        (ku, kv, kw), (pu, pv, pw), (lu, lv, lw) = self.knots, self.degrees, self._last_spans
+        fn(uvw, ku, kv, kw, pu, pv, pw, lu, lv, lw, self._net, out, der, want_der)
+        return out, (der if want_der else None)
+
+    def _numpy_sums(self, uvw, want_der):
+        """The plain numpy path (reference and fallback when numba is missing)."""
+        order = 1 if want_der else 0
+        loc = []
         for a in range(3):
             p, k = self.degrees[a], self.knots[a]
             t = np.clip(uvw[:, a], k[p], k[-p - 1])
             span = basis.find_span(k, p, t)
-            out.append((span, basis.basis_derivatives(k, p, t, order, span)))
-        return out
-
-    def _sum(self, loc, du, dv, dw, hp):
+            loc.append((span, basis.basis_derivatives(k, p, t, order, span)))
         (su, bu), (sv, bv), (sw, bw) = loc
         pu, pv, pw = self.degrees
         iu = su[:, None] - pu + np.arange(pu + 1)
         iv = sv[:, None] - pv + np.arange(pv + 1)
         iw = sw[:, None] - pw + np.arange(pw + 1)
-        local = hp[iu[:, :, None, None], iv[:, None, :, None], iw[:, None, None, :]]  # (n, pu+1, pv+1, pw+1, 4)
-        return np.einsum("ni,nj,nk,nijkd->nd", bu[:, du], bv[:, dv], bw[:, dw], local, optimize=True)
+        local = self._net[iu[:, :, None, None], iv[:, None, :, None], iw[:, None, None, :]]
+        s = lambda du, dv, dw: np.einsum("ni,nj,nk,nijkd->nd", bu[:, du], bv[:, dv], bw[:, dw], local, optimize=True)
+        h = s(0, 0, 0)
+        if not want_der:
+            return h, None
+        return h, np.stack([s(1, 0, 0), s(0, 1, 0), s(0, 0, 1)], axis=-1)
+
+    def _project(self, h, hd):
+        """Homogeneous sums -> points and (quotient rule) partials."""
+        if not self.is_rational:
+            return h, hd
+        w = h[:, 3:4]
+        pts = h[:, :3] / w
+        if hd is None:
+            return pts, None
+        der = (hd[:, :3, :] - pts[:, :, None] * hd[:, 3:4, :]) / w[:, :, None]
+        return pts, der
 
     def evaluate(self, uvw):
-        """(n, 3) parameters -> (n, 3) points."""
+        """(n, 3) parameters -> (n, 3) points. Parameters outside the domain are clamped to it."""
         uvw = self._check_uvw(uvw)
-        loc = self._local(uvw, 0)
-        h = self._sum(loc, 0, 0, 0, self.homogeneous())
-        return h[:, :3] / h[:, 3:4]
+        return self._project(*self._kernel(uvw, False))[0]
 
     def evaluate_with_derivatives(self, uvw):
         """(n, 3) -> points (n, 3) and partials (n, 3, 3) with [i, :, k] = d point / d param k."""
         uvw = self._check_uvw(uvw)
-        loc = self._local(uvw, 1)
-        hp = self.homogeneous()
-        h = self._sum(loc, 0, 0, 0, hp)
-        w = h[:, 3:4]
-        pts = h[:, :3] / w
-        der = np.empty((uvw.shape[0], 3, 3))
-        for k, (du, dv, dw) in enumerate(((1, 0, 0), (0, 1, 0), (0, 0, 1))):
-            hd = self._sum(loc, du, dv, dw, hp)
-            der[:, :, k] = (hd[:, :3] - pts * hd[:, 3:4]) / w
-        return pts, der
+        return self._project(*self._kernel(uvw, True))
 
     def derivatives(self, uvw):
         """(n, 3) -> (n, 3, 3): [i, :, k] = d point / d param k."""
         return self.evaluate_with_derivatives(uvw)[1]
 
+    def _grid_sums(self, u, v, w, want_der):
+        # Basis once per axis, then contract w, v, u in turn (cost ~ a*b*c*n_u*d for the last step).
+        u, v, w = (np.atleast_1d(np.asarray(x, dtype=float)).ravel() for x in (u, v, w))
+        order = 1 if want_der else 0
+        Bu, Bv, Bw = (basis.basis_matrix(k, p, t, order) for k, p, t in zip(self.knots, self.degrees, (u, v, w)))
+        net = self._net
+        cw = [np.einsum("ck,ijkd->ijcd", Bw[o], net, optimize=True) for o in range(order + 1)]
+        bv = [np.einsum("bj,ijcd->ibcd", Bv[0], cw[0], optimize=True)]
+        if want_der:
+            bv.append(np.einsum("bj,ijcd->ibcd", Bv[1], cw[0], optimize=True))  # d/dv
+            bv.append(np.einsum("bj,ijcd->ibcd", Bv[0], cw[1], optimize=True))  # d/dw
+        h = np.einsum("ai,ibcd->abcd", Bu[0], bv[0], optimize=True)
+        if not want_der:
+            return h, None
+        hd = np.stack([np.einsum("ai,ibcd->abcd", Bu[1], bv[0], optimize=True),
+                       np.einsum("ai,ibcd->abcd", Bu[0], bv[1], optimize=True),
+                       np.einsum("ai,ibcd->abcd", Bu[0], bv[2], optimize=True)], axis=-1)
+        return h, hd
+
     def evaluate_grid(self, u, v, w):
         """Tensor grid: parameter lists (a,), (b,), (c,) -> points (a, b, c, 3)."""
-        u, v, w = (np.atleast_1d(np.asarray(x, dtype=float)) for x in (u, v, w))
-        uu, vv, ww = np.meshgrid(u, v, w, indexing="ij")
-        uvw = np.stack([uu.ravel(), vv.ravel(), ww.ravel()], axis=1)
-        return self.evaluate(uvw).reshape(len(u), len(v), len(w), 3)
+        h, _ = self._grid_sums(u, v, w, False)
+        if self.is_rational:
+            return h[..., :3] / h[..., 3:4]
+        return h
+
+    def derivatives_grid(self, u, v, w):
+        """Tensor grid: (a,), (b,), (c,) -> points (a, b, c, 3) and partials (a, b, c, 3, 3), [.., :, k] = d/d param k."""
+        h, hd = self._grid_sums(u, v, w, True)
+        if not self.is_rational:
+            return h, hd
+        wt = h[..., 3:4]
+        pts = h[..., :3] / wt
+        der = (hd[..., :3, :] - pts[..., :, None] * hd[..., 3:4, :]) / wt[..., None]
+        return pts, der
+
+    # --- refinement and maps ------------------------------------------------------------------------------
+    def insert_knot(self, axis, t, times=1):
+        """The same volume with knot t inserted `times` times along axis 0/1/2 (Boehm, in homogeneous space)."""
+        axis = _axis_index(axis)
+        k, hp = knots_mod.insert_knot(self.knots[axis], self.degrees[axis], self.homogeneous(), float(t), times, axis)
+        new_knots = list(self.knots)
+        new_knots[axis] = k
+        return self._from_h(new_knots, hp)
+
+    def _from_h(self, knots, hp):
+        # Keep the rational/polynomial kind of self (from_homogeneous would drop all-one weights anyway).
+        if not self.is_rational:
+            return Volume(self.degrees, tuple(knots), hp[..., :3] / hp[..., 3:4], None)
+        return Volume(self.degrees, tuple(knots), hp[..., :3] / hp[..., 3:4], hp[..., 3])
+
+    def bezier_elements(self):
+        """Bezier extraction (every interior knot raised to multiplicity p; NURBS Book 5.3).
+
+        Returns (breaks: three arrays of distinct knots (E_a + 1,), hpoints (E_u, E_v, E_w, p_u+1, p_v+1, p_w+1, 4)):
+        homogeneous Bezier control points of each element.
+        """
+        hp = self.homogeneous()
+        brs = []
+        for a in range(3):
+            br, hp = knots_mod.bezier_extract_axis(self.knots[a], self.degrees[a], hp, axis=2 * a)
+            brs.append(br)
+        # hp is now (E_u, p_u+1, E_v, p_v+1, E_w, p_w+1, 4)
+        return tuple(brs), np.ascontiguousarray(hp.transpose(0, 2, 4, 1, 3, 5, 6))
+
+    def subvolume(self, box):
+        """The volume restricted to the parameter box (2, 3) (row 0 minimum, row 1 maximum), exactly."""
+        box = np.asarray(box, dtype=float)
+        if box.shape != (2, 3):
+            raise ModelError(f"subvolume: box must have shape (2, 3), got {box.shape}")
+        dom = self.domain_array
+        for a in range(3):
+            lo, hi = box[:, a]
+            if not (dom[0, a] <= lo < hi <= dom[1, a]):
+                raise ModelError(
+                    f"subvolume: box along {AXES[a]} is [{lo:g}, {hi:g}]; expected lo < hi inside the domain "
+                    f"[{dom[0, a]:g}, {dom[1, a]:g}]")
+        hp = self.homogeneous()
+        new_knots = []
+        for a in range(3):
+            k, hp = knots_mod.sub_range(self.knots[a], self.degrees[a], hp, box[0, a], box[1, a], axis=a)
+            new_knots.append(k)
+        return self._from_h(new_knots, hp)
+
+    def transformed(self, matrix, offset=(0.0, 0.0, 0.0)):
+        """x -> matrix @ x + offset applied to the control points (exact for NURBS: affine maps commute)."""
+        m = np.asarray(matrix, dtype=float)
+        o = np.asarray(offset, dtype=float)
+        if m.shape != (3, 3) or o.shape != (3,):
+            raise ModelError(f"transformed: expected a (3, 3) matrix and a (3,) offset, got {m.shape} and {o.shape}")
+        return Volume(self.degrees, self.knots, self.control_points @ m.T + o, self.weights)
+
+    def scaled(self, factor):
+        """Uniform scale about the origin."""
+        return self.transformed(np.eye(3) * float(factor))
 
     def __repr__(self):
         kind = "rational" if self.is_rational else "polynomial"
