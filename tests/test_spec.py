@@ -441,6 +441,11 @@ def test_invalid_yaml_names_the_line(folder):
     assert re.search(r"not valid YAML at line \d+, column \d+ \(got .+, expected a YAML mapping\)", p)
 
 
+def test_impossible_date(folder):
+    p = only_problem(folder, "name: 2020-13-45\n", "spec")
+    assert "a value shaped like a date is not a real date (got 'month must be in 1..12', expected a valid date" in p
+
+
 def test_key_given_twice(folder):
     text = "name: t\nmodel: {nurbs: models/vol.json}\ngrid: [2, 2, 2]\ngrid: [3, 3, 3]\n"
     p = only_problem(folder, text, "grid")
@@ -504,21 +509,31 @@ def test_every_mistake_is_reported_at_once(folder):
 # ----------------------------------------------------------------------------------------------------
 # Garbage never escapes as anything but SpecError
 
-_KNOWN_KEYS = ["name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "nurbs", "patch",
-               "builtin", "mesh", "cage", "units", "size", "repair", "type", "padding", "control_points", "seed",
-               "amplitude", "style", "shape", "radius", "length", "clearance", "axial_clearance", "space",
-               "directory", "format", "tolerance", "plate", "spacing", "labels", "u", "v", "w"]
-_scalars = (st.none() | st.booleans() | st.integers(-10, 10) | st.floats(allow_nan=True, allow_infinity=True)
+_SECTION_KEYS = {
+    "model": ["nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair", "type", "padding",
+              "control_points"],
+    "splits": ["u", "v", "w"], "randomize": ["seed", "amplitude", "control_points"],
+    "joints": ["style", "shape", "radius", "length", "clearance", "axial_clearance", "space"],
+    "output": ["directory", "format", "tolerance", "plate", "spacing", "labels"],
+}
+_scalars = (st.none() | st.booleans() | st.integers(-3, 10) | st.floats(allow_nan=True, allow_infinity=True)
             | st.sampled_from(["", "w", "box", "pin", "stl", "models/vol.json", "meshes/bunny.off", "../x", "t"])
-            | st.text(max_size=8))
+            | st.text(max_size=6))
 _values = st.recursive(_scalars, lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
-    st.sampled_from(_KNOWN_KEYS) | st.text(max_size=4) | st.integers(), inner, max_size=4), max_leaves=20)
+    st.sampled_from(sum(_SECTION_KEYS.values(), [])) | st.text(max_size=3) | st.integers(), inner, max_size=3),
+    max_leaves=8)
+_sections = {key: _values | st.dictionaries(st.sampled_from(keys), _values, max_size=len(keys))
+             for key, keys in _SECTION_KEYS.items()}
+_garbage = st.fixed_dictionaries({}, optional={
+    "name": _values, "grid": _values | st.lists(_scalars, min_size=3, max_size=3), "periodic": _values,
+    "junk": _values, **_sections})
 
 
-@settings(max_examples=150, deadline=None, derandomize=True,
+@settings(max_examples=80, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-@given(st.dictionaries(st.sampled_from(_KNOWN_KEYS[:8]) | st.text(max_size=4), _values, max_size=8))
-def test_garbage_mappings_raise_only_spec_errors(folder, data):
+@given(_garbage)
+def test_garbage_mappings_raise_only_spec_errors(folder, garbage):
+    data = {**base(), **garbage}  # mostly valid, so the garbage reaches the deeper checks
     try:
         spec = load(folder, data)
     except SpecError as exc:

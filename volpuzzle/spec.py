@@ -211,7 +211,7 @@ class _Checker:
 
     # ---- structure
 
-    def mapping(self, path, value, keys, *, required=(), allow_none=True):
+    def mapping(self, path, value, keys, *, allow_none=True):
         """The value as a dict with only known keys (unknown ones reported); None if it is not a mapping."""
         if value is None and allow_none:
             return {}
@@ -225,9 +225,6 @@ class _Checker:
                 continue
             self.bad(_path_join(path, key if isinstance(key, str) else str(key)),
                      "unknown key" + _suggest(key, keys), _show(key), _one_of(keys))
-        for key in required:
-            if key not in out:
-                self.bad(_path_join(path, key), "missing", "nothing", _REQUIRED_HELP.get(key, "a value"))
         return out
 
     # ---- scalars
@@ -624,6 +621,10 @@ def _yaml_problem(exc: Exception) -> str:
                 f"texts, numbers and booleans)")
     if isinstance(exc, RecursionError):
         problem = "nested too deeply"
+    elif isinstance(exc, ValueError) and not isinstance(exc, yaml.YAMLError):
+        # PyYAML builds dates from anything shaped like one, and fails on impossible ones
+        return (f"spec: a value shaped like a date is not a real date (got {_repr.repr(problem)}, expected a "
+                f"valid date, or quotes around the text)")
     return f"spec: not valid YAML{where} (got {_repr.repr(problem)}, expected a YAML mapping)"
 
 
@@ -694,10 +695,16 @@ def load_spec(path) -> Spec:
 def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     c = _Checker(source.parent)
     c.problems.extend(problems)
-    top = c.mapping("", data, _TOP_KEYS, required=("name", "model", "grid"))
-    name = c.name(top["name"]) if "name" in top else None
-    model = c.model(top["model"]) if "model" in top else None
-    grid = c.triple("grid", top["grid"], 1) if "grid" in top else None
+    top = c.mapping("", data, _TOP_KEYS)
+
+    def required(key, check):
+        if key in top:
+            return check(top[key])
+        c.bad(key, "missing", "nothing", _REQUIRED_HELP[key])
+        return None
+    name = required("name", c.name)
+    model = required("model", c.model)
+    grid = required("grid", lambda value: c.triple("grid", value, 1))
     splits = c.splits(top.get("splits"), grid)
     periodic = c.periodic(top.get("periodic"))
     randomize = c.randomize(top.get("randomize"))
