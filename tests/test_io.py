@@ -200,7 +200,8 @@ def test_irit_periodic_knot_vector_is_unrolled_and_clamped(tmp_path):
     cps = rng.normal(size=(5, 2, 2, 3))
     pts = "\n".join("[" + " ".join(repr(float(x)) for x in p) + "]" for p in cps.transpose(2, 1, 0, 3).reshape(-1, 3))
     text = (f"[OBJECT RING [color 4]\n [TRIVAR BSPLINE 5 2 2 3 2 2 E3\n [KVP 0 1 2 3 4 5 6 7 8 9]\n"
-            f" [KV 0 0 1 1]\n [KV 0 0 1 1]\n{pts}\n ]\n]\n[OBJECT OTHER [CURVE BSPLINE 2 2 E2 [KV 0 0 1 1] [0 0] [1 1]]]\n")
+            f" [KV 0 0 1 1]\n [KV 0 0 1 1]\n{pts}\n ]\n]\n"
+            "[OBJECT OTHER [CURVE BSPLINE 2 2 E2 [KV 0 0 1 1] [0 0] [1 1]]]\n")
     v, meta = load_model_with_meta(write(tmp_path, "p.itd", text))
     assert v.domain[0] == (2.0, 7.0) and meta["periodic_knots"] == [["u"]]
     vw = np.random.default_rng(9).uniform(0, 1, (50, 2))

@@ -123,7 +123,8 @@ def _geometry(path, g, label):
     for a, n in enumerate(sizes):
         if n < 1:
             raise fail(path, f"{label}.Basis[{a}].KnotVector",
-                       f"{len(knots[a])} knots are too few for degree {degrees[a]} (need at least {2 * degrees[a] + 2})")
+                       f"{len(knots[a])} knots are too few for degree {degrees[a]} "
+                       f"(need at least {2 * degrees[a] + 2})")
     count = sizes[0] * sizes[1] * sizes[2]
     cel = g.find("coefs")
     if cel is None:
