@@ -346,7 +346,7 @@ class _Checker:
         if "patch" in m:
             patch = self.integer("model.patch", m["patch"], 0)
             if kind is not None and kind != "nurbs" and patch is not None:
-                self.bad("model.patch", f"only used with a NURBS file", f"patch with {kind}",
+                self.bad("model.patch", "only used with a NURBS file", f"patch with {kind}",
                          "model.patch only together with model.nurbs")
             patch = patch or 0
 
