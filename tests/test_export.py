@@ -167,6 +167,23 @@ def test_read_3mf_names_the_file(tmp_path):
         read_3mf(tmp_path / "missing.3mf")
 
 
+def test_read_3mf_strict_refuses_what_lax_mode_accepts(tmp_path):
+    import zipfile
+
+    box = trimesh.creation.box()
+    good = write_3mf(tmp_path / "ok.3mf", [("b", box.vertices, box.faces, (1, 2, 3), None)])
+    with zipfile.ZipFile(good) as z:
+        parts = {n: z.read(n) for n in z.namelist()}
+    parts["3D/3dmodel.model"] = parts["3D/3dmodel.model"].replace(b"<vertex ", b'<vertex q="1" ', 1)
+    odd = tmp_path / "odd.3mf"
+    with zipfile.ZipFile(odd, "w") as z:
+        for name, data in parts.items():
+            z.writestr(name, data)
+    with pytest.raises(ModelError, match="odd.3mf: not a readable 3MF file.*Invalid Attribute"):
+        read_3mf(odd, strict=True)
+    assert len(read_3mf(odd, strict=False)) == 1
+
+
 def test_unknown_format_is_refused(tmp_path, pieces):
     with pytest.raises(ExportError, match="output.format: got 'obj'"):
         write_build(tmp_path / "c", pieces, {}, fmt="obj")
