@@ -22,7 +22,7 @@ import trimesh
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import write_3mf
 
-__all__ = ["write_build", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS"]
+__all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS"]
 
 FORMATS = ("stl", "3mf")
 # Significant digits kept for floats in report.json: far below print resolution, free of 0.30000000000000004.
@@ -221,6 +221,21 @@ def _looks_like_output(target: Path) -> bool:
     return (target / "report.json").is_file() or not any(target.iterdir())
 
 
+def check_target(target, force: bool = False) -> Path:
+    """Raise ExportError unless write_build may write target: absent, or with force an earlier output
+    (a folder holding report.json) or an empty folder. Cheap: call it before the work starts, too."""
+    target = Path(target)
+    if target.exists() or target.is_symlink():
+        if not force:
+            raise ExportError(f"{target} exists; use --force to replace it")
+        if not target.is_dir() or target.is_symlink():
+            raise ExportError(f"{target} exists and is not a folder; refusing to replace it")
+        if not _looks_like_output(target):
+            raise ExportError(f"{target} is not a volpuzzle output folder (no report.json) and not empty; "
+                              f"refusing to replace it, even with --force")
+    return target
+
+
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
                 dowels: Sequence = (), colors: Optional[np.ndarray] = None,
                 extras: Optional[Mapping[str, Callable[[Path], None]]] = None) -> Path:
@@ -244,14 +259,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     colors = piece_colors(len(items)) if colors is None else np.asarray(colors, dtype=np.uint8)
     if colors.shape != (len(items), 3):
         raise ExportError(f"colors: got shape {colors.shape}, expected ({len(items)}, 3)")
-    if target.exists() or target.is_symlink():
-        if not force:
-            raise ExportError(f"{target} exists; use --force to replace it")
-        if not target.is_dir() or target.is_symlink():
-            raise ExportError(f"{target} exists and is not a folder; refusing to replace it")
-        if not _looks_like_output(target):
-            raise ExportError(f"{target} is not a volpuzzle output folder (no report.json) and not empty; "
-                              f"refusing to replace it, even with --force")
+    check_target(target, force)
     parent = target.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
