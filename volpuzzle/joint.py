@@ -134,68 +134,95 @@ def pieces_joints(joints, cell_index):
 
 @dataclass(frozen=True, eq=False)
 class _Geometry:
-    """lengths: {cell: (3,)} shortest mm length of the cell's parameter lines along each axis (over a 3x3 grid of
-    lines, each as a polyline of 8 chords); sag: {face number: mm of the face's bulge per mm^2 of pin radius}."""
+    """lengths: {cell: (3, G, G)} mm length of the cell's parameter lines along each axis a, on a G x G grid of the
+    other two (cyclic) fractions _GRID, each line as a polyline of 8 chords; sag: {face number: mm of the face's bulge
+    per mm^2 of disc radius at its centre}."""
 
     lengths: dict
     sag: dict
 
 
+_GRID = np.linspace(0.0, 1.0, 7)
+
+
+def _len_at(geo, idx, a, fr):
+    """Length (n,) mm of the a-lines of cell idx through fractions fr (n, 3), bilinear in the grid."""
+    b, c = _cyclic(a)
+    tab = geo.lengths[idx][a]
+    g = len(_GRID) - 1
+    x = np.clip(np.asarray(fr, dtype=float)[:, b], 0.0, 1.0) * g
+    y = np.clip(np.asarray(fr, dtype=float)[:, c], 0.0, 1.0) * g
+    i = np.minimum(x.astype(int), g - 1)
+    j = np.minimum(y.astype(int), g - 1)
+    tx, ty = x - i, y - j
+    return ((1 - tx) * (1 - ty) * tab[i, j] + tx * (1 - ty) * tab[i + 1, j] + (1 - tx) * ty * tab[i, j + 1]
+            + tx * ty * tab[i + 1, j + 1])
+
+
+def _center_len(geo, idx, a):
+    return float(_len_at(geo, idx, a, np.full((1, 3), 0.5))[0])
+
+
 def _measure(tiling, fmap):
     cells = list(tiling.cells.values())
     t = np.linspace(0.0, 1.0, 9)
-    g = np.array([0.0, 0.5, 1.0])
+    g = _GRID
+    ng = len(g)
     pts = []
     for cell in cells:
         lo, hi = cell.box
         for a in range(3):
             b, c = _cyclic(a)
-            fr = np.zeros((3, 3, 9, 3))
+            fr = np.zeros((ng, ng, 9, 3))
             fr[..., a] = t[None, None, :]
             fr[..., b] = g[:, None, None]
             fr[..., c] = g[None, :, None]
             pts.append(lo + fr.reshape(-1, 3) * (hi - lo))
-    xyz = fmap.evaluate(np.concatenate(pts)).reshape(len(cells), 3, 9, 9, 3)
-    seg = np.linalg.norm(np.diff(xyz, axis=3), axis=-1).sum(axis=3)  # (cells, 3, 9)
-    lengths = {cell.index: seg[n].min(axis=1) for n, cell in enumerate(cells)}
+    xyz = fmap.evaluate(np.concatenate(pts)).reshape(len(cells), 3, ng, ng, 9, 3)
+    seg = np.linalg.norm(np.diff(xyz, axis=4), axis=-1).sum(axis=4)  # (cells, 3, ng, ng)
+    geo = _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)}, {})
 
     # The bulge of each face over a small disc at its centre, to size the pin's base.
-    sag = {}
     if tiling.faces:
         ring = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)
-        centers, steps, info = [], [], []
+        centers, info = [], []
         for n, f in enumerate(tiling.faces):
             cell = tiling.cells[f.lower]
             a = f.axis
             b, c = _cyclic(a)
             uvw = cell.center.copy()
             uvw[a] = cell.box[1, a]
-            rho = 0.2 * min(lengths[f.lower][b], lengths[f.lower][c])
+            fr = np.array([[0.5, 0.5, 0.5]])
+            fr[0, a] = 1.0
+            rho = 0.2 * min(float(_len_at(geo, f.lower, b, fr)[0]), float(_len_at(geo, f.lower, c, fr)[0]))
             centers.append(uvw)
             info.append((n, a, b, c, rho))
         x0, jac = fmap.evaluate_with_jacobian(np.array(centers))
+        steps = []
         for (n, a, b, c, rho), u0, j in zip(info, centers, jac):
-            db = rho / max(np.linalg.norm(j[:, b]), 1e-12)
-            dc = rho / max(np.linalg.norm(j[:, c]), 1e-12)
             p = np.repeat(u0[None], 8, axis=0)
-            p[:, b] += ring[:, 0] * db
-            p[:, c] += ring[:, 1] * dc
-            steps.append((n, a, b, c, rho, p))
-        allp = np.concatenate([s[-1] for s in steps])
-        xr = fmap.evaluate(allp).reshape(len(steps), 8, 3)
-        for (n, a, b, c, rho, _), x, xc, j in zip(steps, xr, x0, jac):
+            p[:, b] += ring[:, 0] * rho / max(np.linalg.norm(j[:, b]), 1e-12)
+            p[:, c] += ring[:, 1] * rho / max(np.linalg.norm(j[:, c]), 1e-12)
+            steps.append(p)
+        xr = fmap.evaluate(np.concatenate(steps)).reshape(len(steps), 8, 3)
+        for (n, a, b, c, rho), x, xc, j in zip(info, xr, x0, jac):
             nrm = np.cross(j[:, b], j[:, c])
-            nrm = nrm / max(np.linalg.norm(nrm), 1e-12)
-            sag[n] = float(np.max(np.abs((x - xc) @ nrm))) / rho ** 2
-    return _Geometry(lengths, sag)
+            size = np.linalg.norm(nrm)
+            if rho <= 1e-9 or size <= 1e-12:
+                geo.sag[n] = 0.0  # a collapsed face: no joint will fit there anyway
+                continue
+            geo.sag[n] = float(np.max(np.abs((x - xc) @ (nrm / size)))) / rho ** 2
+    return geo
 
 
 def _face_side(tiling, geo, f):
-    """Shortest in-face side of face f, mm."""
+    """Shorter in-face side of face f through its centre, mm."""
     b, c = _cyclic(f.axis)
-    lo = geo.lengths[f.lower]
-    up = geo.lengths[f.upper]
-    return float(min(lo[b], lo[c], up[b], up[c]))
+    fr = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    fr[0, f.axis], fr[1, f.axis] = 1.0, 0.0
+    lo = [_len_at(geo, f.lower, x, fr[:1])[0] for x in (b, c)]
+    up = [_len_at(geo, f.upper, x, fr[1:])[0] for x in (b, c)]
+    return float(min(lo + up))
 
 
 def _round_down(x, step=0.1):
@@ -208,9 +235,9 @@ def default_sizes(tiling, fmap, _geo=None):
     geo = _geo or _measure(tiling, fmap)
     if tiling.faces:
         side = min(_face_side(tiling, geo, f) for f in tiling.faces)
-        depth = min(float(geo.lengths[idx][f.axis]) for f in tiling.faces for idx in (f.lower, f.upper))
+        depth = min(_center_len(geo, idx, f.axis) for f in tiling.faces for idx in (f.lower, f.upper))
     else:
-        side = depth = min(float(v.min()) for v in geo.lengths.values())
+        side = depth = min(_center_len(geo, idx, a) for idx in tiling.cells for a in range(3))
     radius = max(_round_down(0.12 * side), 0.1)
     length = max(_round_down(min(2.0 * radius, 0.35 * depth)), 0.1)
     return radius, length
@@ -279,7 +306,7 @@ def _length_problems(tiling, geo, sizes, intr):
             if lo is None and hi is None:
                 continue
             need = (lo[1] if lo else 0.0) + (hi[1] if hi else 0.0) + sizes.wall
-            depth = float(geo.lengths[idx][a])
+            depth = _center_len(geo, idx, a)
             if need > depth + 1e-9:
                 # what would fit: solve for the length with the other intrusions unchanged
                 holes = sum(1 for s, side in ((lo, -1), (hi, +1)) if s is not None
@@ -319,43 +346,50 @@ def _search(tiling, geo, sizes, intr):
     """The cheapest offset pattern {axis: (k_b, k_c)} under which all joints are apart, with every face's fractions
     and parameters -> (pattern, {face number: (uvw_lower, uvw_upper)}) or None."""
     reach, sep, wall = sizes.reach, sizes.separation, sizes.wall
-    shortest = np.min(np.array(list(geo.lengths.values())), axis=0)  # (3,)
-    delta = sep / shortest  # one offset step in fractions, enough in the shortest cell
     fr_low, fr_up, uvws = {}, {}, {}
     allowed = {a: np.ones(_NK, bool) for a in range(3)}
     for n, f in enumerate(tiling.faces):
+        b, c = _cyclic(f.axis)
+        centre = np.full((1, 3), 0.5)
+        centre[0, f.axis] = 1.0
+        delta = np.zeros(3)
+        for x in (b, c):  # one offset step: the separation, in fractions of this face
+            delta[x] = sep / max(float(_len_at(geo, f.lower, x, centre)[0]), 1e-9)
         fl, fu, ul, uu = _face_fractions(tiling, f, _KS, delta)
         fr_low[n], fr_up[n], uvws[n] = fl, fu, (ul, uu)
-        b, c = _cyclic(f.axis)
         for idx, fr in ((f.lower, fl), (f.upper, fu)):
-            ln = geo.lengths[idx]
             for x in (b, c):
-                room = np.minimum(fr[:, x], 1.0 - fr[:, x]) * ln[x]
+                room = np.minimum(fr[:, x], 1.0 - fr[:, x]) * _len_at(geo, idx, x, fr)
                 allowed[f.axis] &= room >= reach + wall - 1e-9
     # pair tables: ok[(a1, a2)][k1, k2] for a1 < a2, over every piece
     ok = {pair: np.ones((_NK, _NK), bool) for pair in ((0, 1), (0, 2), (1, 2))}
     for idx, slots in intr.items():
-        ln = geo.lengths[idx]
         items = []
         for (a, side), (n, depth) in slots.items():
             fr = fr_low[n] if side == +1 else fr_up[n]
-            items.append((a, side, fr, depth))
+            lens = np.stack([_len_at(geo, idx, x, fr) for x in range(3)], axis=1)  # (_NK, 3)
+            opposite = slots.get((a, -side))
+            # the piece's depth at this joint holds both intrusions of this axis and a wall
+            need = depth + (opposite[1] if opposite else 0.0) + wall
+            allowed[a] &= lens[:, a] >= need - 1e-9
+            items.append((a, side, fr, depth, lens))
         for i in range(len(items)):
             for j in range(i + 1, len(items)):
                 s1, s2 = items[i], items[j]
                 if s1[0] == s2[0]:
-                    continue  # same axis: kept apart by depth (_length_problems)
+                    continue
                 if s1[0] > s2[0]:
                     s1, s2 = s2, s1
                 a1, a2 = s1[0], s2[0]
                 a3 = 3 - a1 - a2
-                lateral = np.abs(s1[2][:, None, a3] - s2[2][None, :, a3]) * ln[a3] >= sep - 1e-9
+                span = np.minimum(s1[4][:, None, a3], s2[4][None, :, a3])
+                lateral = np.abs(s1[2][:, None, a3] - s2[2][None, :, a3]) * span >= sep - 1e-9
 
                 def clear(s, other, along_rows):
-                    a, side, _, depth = s
+                    a, side, _, depth, _ = s
                     f_other = other[2][:, a]
-                    level = f_other if side == -1 else 1.0 - f_other
-                    good = level * ln[a] - reach - wall >= depth - 1e-9  # (_NK,) over the other's k
+                    level = (f_other if side == -1 else 1.0 - f_other) * other[4][:, a]
+                    good = level - reach - wall >= depth - 1e-9  # (_NK,) over the other's k
                     return good[None, :] if along_rows else good[:, None]
 
                 ok[(a1, a2)] &= lateral | clear(s1, s2, True) | clear(s2, s1, False)
