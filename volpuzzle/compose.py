@@ -441,10 +441,77 @@ def _apply(body, pins, holes, what):
     return body
 
 
+def _wrap(uvw, sampling):
+    """Parameters beyond a periodic face (a pin that crosses the seam) -> the same points on the other side."""
+    uvw = np.array(uvw, dtype=float, copy=True)
+    lo, hi = sampling.domain
+    for a, swap, flip in sampling.seams:
+        b, c = _others(a)
+        span = hi[a] - lo[a]
+        for sign in (1, -1):
+            out = uvw[:, a] > hi[a] if sign > 0 else uvw[:, a] < lo[a]
+            if not np.any(out):
+                continue
+            st = (uvw[out][:, [b, c]] - lo[[b, c]]) / (hi[[b, c]] - lo[[b, c]])
+            if sign > 0:  # max side -> min side: swap, then flip
+                st = st[:, ::-1] if swap else st
+                st = np.where(np.array(flip), 1.0 - st, st)
+            else:  # min side -> max side: unflip, then unswap
+                st = np.where(np.array(flip), 1.0 - st, st)
+                st = st[:, ::-1] if swap else st
+            moved = uvw[out]
+            moved[:, [b, c]] = lo[[b, c]] + st * (hi[[b, c]] - lo[[b, c]])
+            moved[:, a] -= sign * span
+            uvw[out] = moved
+    return uvw
+
+
+def _face_positions(cell, sampling, grid, q):
+    """Vertices on the cell box's faces take the mapped grid's piecewise-linear positions, so a face cut by a pin
+    or hole in the domain still lies exactly on the cut surface the neighbour sees.
+    -> xyz (n, 3) (NaN off the faces), mask (n,) int: bit 2a+side set when on that face."""
+    xyz = np.full(q.shape, np.nan)
+    mask = np.zeros(len(q), dtype=np.int64)
+    rng = []
+    for a in range(3):
+        lo = int(sampling.break_index[a][cell.index[a]])
+        hi = int(sampling.break_index[a][cell.index[a] + 1])
+        rng.append(np.arange(lo, hi + 1))
+    for a in range(3):
+        b, c = _others(a)
+        eps = 1e-10 * (sampling.domain[1][a] - sampling.domain[0][a])
+        for side, i in ((0, rng[a][0]), (1, rng[a][-1])):
+            on = np.abs(q[:, a] - sampling.params[a][i]) <= eps
+            if not np.any(on):
+                continue
+            mask[on] |= 1 << (2 * a + side)
+            todo = on & np.isnan(xyz[:, 0])
+            if not np.any(todo):
+                continue
+            _, _, pos, main = _face_quads(grid, a, int(i), rng[b], rng[c])
+            pb, pc = sampling.params[b][rng[b]], sampling.params[c][rng[c]]
+            x, y = q[todo, b], q[todo, c]
+            ib = np.clip(np.searchsorted(pb, x) - 1, 0, len(pb) - 2)
+            ic = np.clip(np.searchsorted(pc, y) - 1, 0, len(pc) - 2)
+            s = np.clip((x - pb[ib]) / (pb[ib + 1] - pb[ib]), 0, 1)
+            t = np.clip((y - pc[ic]) / (pc[ic + 1] - pc[ic]), 0, 1)
+            p00, p10 = pos[ib, ic], pos[ib + 1, ic]
+            p01, p11 = pos[ib, ic + 1], pos[ib + 1, ic + 1]
+            m = main[ib, ic][:, None]
+            s, t = s[:, None], t[:, None]
+            # main diagonal 00-11: below it (s >= t) triangle (00, 10, 11), above it (00, 11, 01)
+            lower = np.where(s >= t, p00 + s * (p10 - p00) + t * (p11 - p10), p00 + t * (p01 - p00) + s * (p11 - p01))
+            # anti diagonal 10-01: (00, 10, 01) where s + t <= 1, else (10, 11, 01)
+            anti = np.where(s + t <= 1, p00 + s * (p10 - p00) + t * (p01 - p00),
+                            p11 + (1 - s) * (p01 - p11) + (1 - t) * (p10 - p11))
+            xyz[todo] = np.where(m, lower, anti)
+    return xyz, mask
+
+
 def _domain_body(cell, sampling, fmap, grid, dpins, dholes, what):
     """Booleans in parameter space on the cell's own grid, then the vertices mapped through F with the new
-    triangles split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
-    idx3, keys = _cell_boundary(cell, sampling, grid)
+    triangles off the box faces split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
+    idx3, _ = _cell_boundary(cell, sampling, grid)
     own_keys = np.ravel_multi_index(tuple(idx3.reshape(-1, 3).T), grid.n)
     uniq, inv = np.unique(own_keys, return_inverse=True)
     own_idx = np.stack(np.unravel_index(uniq, grid.n), axis=1)
@@ -454,6 +521,7 @@ def _domain_body(cell, sampling, fmap, grid, dpins, dholes, what):
     out = geometry.to_trimesh(body)
     q = np.asarray(out.vertices, dtype=float)
     f = np.asarray(out.faces, dtype=np.int64)
+    xyz, mask = _face_positions(cell, sampling, grid, q)
     # grid vertices keep their exact parameters through the engine; they take the shared, canonical positions
     on = np.ones(len(q), dtype=bool)
     gi = np.empty((len(q), 3), dtype=np.int64)
@@ -462,46 +530,35 @@ def _domain_body(cell, sampling, fmap, grid, dpins, dholes, what):
         k = np.clip(np.searchsorted(p, q[:, a]), 0, len(p) - 1)
         on &= p[k] == q[:, a]
         gi[:, a] = k
-    on_face = on & np.any([grid.is_break[a][gi[:, a]] for a in range(3)], axis=0)
-    xyz = np.empty_like(q)
-    if np.any(on_face):
-        xyz[on_face] = grid.positions(grid.canonical(gi[on_face]))
-    if np.any(~on_face):
-        xyz[~on_face] = fmap.evaluate(q[~on_face])
-    # edges of the original grid already meet the tolerance; only new edges are split
-    grid_edges = set()
-    for t in own_keys.reshape(-1, 3):
-        for u, v in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
-            grid_edges.add((min(u, v), max(u, v)))
-    vkey = np.full(len(q), -1, dtype=np.int64)
-    vkey[on] = np.ravel_multi_index(tuple(gi[on].T), grid.n)
-    q, xyz, f = _refine(q, xyz, f, vkey, grid_edges, fmap, _SAFETY * sampling.tolerance)
+    on &= mask != 0
+    if np.any(on):
+        xyz[on] = grid.positions(grid.canonical(gi[on]))
+    off = np.isnan(xyz[:, 0])
+    if np.any(off):
+        xyz[off] = fmap.evaluate(_wrap(q[off], sampling))
+    q, xyz, f = _refine(q, xyz, f, mask, lambda x: fmap.evaluate(_wrap(x, sampling)),
+                        _SAFETY * sampling.tolerance)
     if fmap.orientation < 0:
         f = f[:, [0, 2, 1]]
     return geometry.weld(xyz, f, _WELD_MM)
 
 
-def _refine(q, xyz, f, vkey, grid_edges, fmap, target):
-    """Split edges whose mapped midpoint is farther than target from the chord, at most one per triangle per pass."""
-    q, xyz, f, vkey = list(q), list(xyz), f.copy(), list(vkey)
-    q, xyz = np.array(q), np.array(xyz)
-    vkey = np.array(vkey)
+def _refine(q, xyz, f, mask, evaluate, target):
+    """Split edges whose mapped midpoint is farther than target from the chord, at most one per triangle per pass.
+    Edges with both ends on one box face (mask bits in common) lie in the flat, already fitted face and stay."""
+    q, xyz, f, mask = np.array(q, dtype=float), np.array(xyz, dtype=float), f.copy(), np.array(mask)
     for _ in range(30):
         e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
         e = np.unique(e, axis=0)
-        ka, kb = vkey[e[:, 0]], vkey[e[:, 1]]
-        is_grid = np.array([(ka[i] >= 0 and kb[i] >= 0 and (min(ka[i], kb[i]), max(ka[i], kb[i])) in grid_edges)
-                            for i in range(len(e))], dtype=bool)
-        cand = e[~is_grid]
+        cand = e[(mask[e[:, 0]] & mask[e[:, 1]]) == 0]
         if len(cand) == 0:
             break
         mid = 0.5 * (q[cand[:, 0]] + q[cand[:, 1]])
-        xm = fmap.evaluate(mid)
+        xm = evaluate(mid)
         err = np.linalg.norm(xm - 0.5 * (xyz[cand[:, 0]] + xyz[cand[:, 1]]), axis=1)
         bad = np.flatnonzero(err > target)
         if len(bad) == 0:
             break
-        # one split per triangle per pass keeps the rewrite simple and conforming
         tri_of_edge = {}
         for t, tri in enumerate(f):
             for k in range(3):
@@ -525,7 +582,7 @@ def _refine(q, xyz, f, vkey, grid_edges, fmap, target):
                 new_f.append((m, b, c))
         q = np.concatenate([q, np.array(new_q)])
         xyz = np.concatenate([xyz, np.array(new_x)])
-        vkey = np.concatenate([vkey, -np.ones(len(new_q), dtype=np.int64)])
+        mask = np.concatenate([mask, np.zeros(len(new_q), dtype=mask.dtype)])
         f = np.concatenate([f[~used], np.array(new_f, dtype=np.int64).reshape(-1, 3)])
     return q, xyz, f
 

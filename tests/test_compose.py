@@ -1,0 +1,338 @@
+"""compose: every piece one closed outward solid, volumes adding up to the model's, no overlaps, the mapped surface
+within the tolerance, shared faces identical on both sides (also across seams), and the same pieces from a pool."""
+
+from functools import lru_cache
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volpuzzle import compose as C
+from volpuzzle import geometry as G
+from volpuzzle.errors import GeometryError
+from volpuzzle.mapping import Map
+from volpuzzle.spline import Volume
+from volpuzzle.spline.seams import Seam
+from volpuzzle.tile import tile
+
+# ---------------------------------------------------------------------------------------------------------------------
+# small analytic models
+
+
+def _clamped(n, p):
+    inner = np.linspace(0, 1, n - p + 1)[1:-1]
+    return np.concatenate([np.zeros(p + 1), inner, np.ones(p + 1)])
+
+
+def _box():
+    """A skewed trilinear block, 30 x 20 x 10 mm."""
+    cp = np.zeros((2, 2, 2, 3))
+    for i, j, k in np.ndindex(2, 2, 2):
+        cp[i, j, k] = (30 * i + 3 * k, 20 * j, 10 * k + 2 * i * j)
+    return Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
+
+
+def _ring(twist_deg=0.0, sweep=360.0, n_w=12, radius=30.0, half=8.0, mirror=False):
+    """A square section swept round a circle, cubic along w, turning by twist_deg; closes on itself for sweep 360."""
+    t = np.arange(n_w) / (n_w - 1)
+    ang = np.radians(sweep) * t
+    centre = radius * np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    radial = np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    up = np.tile([0.0, 0.0, 1.0], (n_w, 1))
+    tw = np.radians(twist_deg) * t
+    e1 = np.cos(tw)[:, None] * radial + np.sin(tw)[:, None] * up
+    e2 = -np.sin(tw)[:, None] * radial + np.cos(tw)[:, None] * up
+    if sweep == 360.0:
+        centre[-1] = centre[0]
+        if twist_deg % 360 == 0:
+            e1[-1], e2[-1] = e1[0], e2[0]
+        elif twist_deg % 360 == 90:
+            e1[-1], e2[-1] = e2[0], -e1[0]
+    x = np.array([-half, half])
+    cp = centre[None, None] + x[:, None, None, None] * e1[None, None] + x[None, :, None, None] * e2[None, None]
+    if mirror:
+        cp = cp * np.array([-1.0, 1.0, 1.0])
+    return Volume((1, 1, 3), (_clamped(2, 1), _clamped(2, 1), _clamped(n_w, 3)), cp)
+
+
+def _cone(n_v=9, radius=20.0, height=15.0):
+    """u radial from a collapsed axis (the u=0 face is the z axis), v round (periodic, quadratic), w up; the top
+    narrows, so it is a truncated cone."""
+    t = np.arange(n_v) / (n_v - 1)
+    ang = 2 * np.pi * t
+    ring = np.stack([np.cos(ang), np.sin(ang)], 1)
+    ring[-1] = ring[0]
+    cp = np.zeros((2, n_v, 2, 3))
+    for j, k in np.ndindex(n_v, 2):
+        r = radius * (1.0 - 0.4 * k)
+        cp[0, j, k] = (0.0, 0.0, height * k)
+        cp[1, j, k] = (r * ring[j, 0], r * ring[j, 1], height * k)
+    return Volume((1, 2, 1), (_clamped(2, 1), _clamped(n_v, 2), _clamped(2, 1)), cp)
+
+
+def _pyramid():
+    """The u=0 face collapses to one point (an apex, as at a sphere's pole)."""
+    cp = np.zeros((2, 2, 2, 3))
+    for j, k in np.ndindex(2, 2):
+        cp[0, j, k] = (0.0, 0.0, 20.0)
+        cp[1, j, k] = (20.0 * j - 10.0, 20.0 * k - 10.0, 0.0)
+    return Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
+
+
+def _warp(seed=3, amplitude=0.06):
+    """R: D -> D, the identity (cubic, 5 control points per axis) with its interior control points moved a little."""
+    n = 5
+    kn = _clamped(n, 3)
+    grev = np.array([kn[i + 1:i + 4].mean() for i in range(n)])
+    g = np.stack(np.meshgrid(grev, grev, grev, indexing="ij"), axis=-1)
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(-amplitude, amplitude, g.shape)
+    d[[0, -1], :, :, 0] = 0
+    d[:, [0, -1], :, 1] = 0
+    d[:, :, [0, -1], 2] = 0
+    return Volume((3, 3, 3), (kn, kn, kn), g + d)
+
+
+def _orientation(vol):
+    c = np.array([[np.mean(d) for d in vol.domain]])
+    return int(np.sign(np.linalg.det(vol.derivatives(c)[0])))
+
+
+def _volume_by_quadrature(vol, n=6):
+    """Model volume: Gauss-Legendre on every knot span of |det J| (exact up to the rational / high-degree rest)."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    total = 0.0
+    spans = [np.unique(k) for k in vol.knots]
+    for a0, a1 in zip(spans[0][:-1], spans[0][1:]):
+        for b0, b1 in zip(spans[1][:-1], spans[1][1:]):
+            for c0, c1 in zip(spans[2][:-1], spans[2][1:]):
+                pts = [0.5 * (lo + hi) + 0.5 * (hi - lo) * x for lo, hi in ((a0, a1), (b0, b1), (c0, c1))]
+                uvw = np.stack(np.meshgrid(*pts, indexing="ij"), -1).reshape(-1, 3)
+                ww = np.einsum("i,j,k->ijk", w, w, w).ravel()
+                det = np.abs(np.linalg.det(vol.derivatives(uvw)))
+                total += np.sum(ww * det) * (a1 - a0) * (b1 - b0) * (c1 - c0) / 8
+    return total
+
+
+CASES = {
+    # name: (volume, grid, periodic, seams, tolerance, warp)
+    "box": (_box, (2, 2, 1), (), {}, 0.1, False),
+    "bent": (lambda: _ring(sweep=120.0, n_w=6), (2, 1, 3), (), {}, 0.1, False),
+    "mirrored": (lambda: _ring(sweep=120.0, n_w=6, mirror=True), (1, 2, 3), (), {}, 0.1, False),
+    "warped": (lambda: _ring(sweep=120.0, n_w=6), (2, 2, 2), (), {}, 0.1, True),
+    "cone": (_cone, (1, 3, 1), (1,), {1: Seam(1, domain=((0, 1),) * 3)}, 0.1, False),
+    "pyramid": (_pyramid, (2, 2, 2), (), {}, 0.1, False),
+    "torus": (lambda: _ring(twist_deg=0.0), (1, 1, 4), (2,), {2: Seam(2, domain=((0, 1),) * 3)}, 0.2, False),
+    "twisted": (lambda: _ring(twist_deg=90.0), (2, 2, 3), (2,),
+                {2: Seam(2, swap=True, flip=(True, False), domain=((0, 1),) * 3)}, 0.2, False),
+}
+
+
+@lru_cache(maxsize=None)
+def _built(name, tolerance=None):
+    make, grid, periodic, seams, tol, warp = CASES[name]
+    vol = make()
+    tol = tolerance or tol
+    t = tile(vol, grid, periodic=periodic, seams=seams)
+    fmap = Map(vol, _warp() if warp else None, _orientation(vol))
+    sampling = C.sample_parameters(t, fmap, tol)
+    pieces = C.compose(t, fmap, [], tol, sampling=sampling)
+    return vol, t, fmap, sampling, pieces
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_models_close_where_the_cases_say():
+    from volpuzzle.spline.seams import find_seams
+
+    assert find_seams(_ring(twist_deg=0.0)) == {2: Seam(2)}
+    assert find_seams(_ring(twist_deg=90.0)) == {2: Seam(2, swap=True, flip=(True, False))}
+    assert _orientation(_ring(sweep=120.0, n_w=6, mirror=True)) == -_orientation(_ring(sweep=120.0, n_w=6))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_every_piece_is_one_closed_outward_solid(name):
+    _, t, _, _, pieces = _built(name)
+    assert [p.cell for p in pieces] == sorted(t.cells)
+    for p in pieces:
+        G.check_solid(p.mesh, p.id)
+        assert p.volume > 0 and p.volume == pytest.approx(p.body_volume)
+        assert p.triangles == len(p.mesh.faces)
+        assert p.id == "p" + "-".join(map(str, p.cell))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_volumes_add_up_to_the_model(name):
+    vol, _, _, _, pieces = _built(name)
+    ref = _volume_by_quadrature(vol)
+    assert sum(p.volume for p in pieces) == pytest.approx(ref, rel=5e-3)
+
+
+def test_volume_error_shrinks_with_the_tolerance():
+    vol = _ring(twist_deg=90.0)
+    ref = _volume_by_quadrature(vol)
+    errors = []
+    for tol in (0.8, 0.2, 0.05):
+        pieces = _built("twisted", tol)[4]
+        errors.append(abs(sum(p.volume for p in pieces) - ref) / ref)
+    assert errors[0] > errors[1] > errors[2]
+
+
+@pytest.mark.parametrize("name", ["bent", "cone", "twisted", "pyramid"])
+def test_neighbours_do_not_overlap(name):
+    _, t, _, _, pieces = _built(name)
+    by_cell = {p.cell: p for p in pieces}
+    for f in t.faces:
+        a, b = by_cell[f.lower], by_cell[f.upper]
+        inter = G.boolean(G.from_trimesh(a.mesh, a.id), G.from_trimesh(b.mesh, b.id), "intersection", a.id)
+        assert inter.volume() <= 1e-6 * min(a.volume, b.volume)
+
+
+@pytest.mark.parametrize("name", ["bent", "mirrored", "warped", "twisted", "cone"])
+def test_mapped_surface_within_tolerance(name):
+    _, t, fmap, sampling, _ = _built(name)
+    grid = C._grid_for(sampling, fmap)
+    rng = np.random.default_rng(11)
+    worst = 0.0
+    for index in sorted(t.cells):
+        own, _ = C._cell_boundary(t.cell(index), sampling, grid)
+        uvw = np.stack([sampling.params[a][own[..., a]] for a in range(3)], axis=-1)  # (tri, 3 corners, 3)
+        pick = rng.choice(len(uvw), size=min(400, len(uvw)), replace=False)
+        lam = rng.dirichlet((1.0, 1.0, 1.0), size=len(pick))
+        corners = fmap.evaluate(uvw[pick].reshape(-1, 3)).reshape(-1, 3, 3)
+        lin = np.einsum("nk,nkd->nd", lam, corners)
+        true = fmap.evaluate(np.einsum("nk,nkd->nd", lam, uvw[pick]))
+        worst = max(worst, float(np.max(np.linalg.norm(true - lin, axis=1))))
+    assert worst <= sampling.tolerance
+    assert 0 < sampling.max_error_mm <= sampling.tolerance
+
+
+def _exact(v):
+    return {tuple(x) for x in np.asarray(v)}
+
+
+@pytest.mark.parametrize("name", ["bent", "torus", "twisted", "warped"])
+def test_shared_faces_have_identical_vertices_and_triangles(name):
+    _, t, _, sampling, pieces = _built(name)
+    by_cell = {p.cell: p for p in pieces}
+    seams_seen = 0
+    for f in t.faces:
+        a, b = by_cell[f.lower].mesh, by_cell[f.upper].mesh
+        common = _exact(a.vertices) & _exact(b.vertices)
+        cell = t.cell(f.lower)
+        sides = [int(sampling.break_index[k][cell.index[k] + 1] - sampling.break_index[k][cell.index[k]] + 1)
+                 for k in range(3) if k != f.axis]
+        assert len(common) == sides[0] * sides[1]  # bit-identical coordinates on both sides
+
+        def on_face(mesh):
+            tri = mesh.vertices[mesh.faces]
+            keep = [all(tuple(x) in common for x in tr) for tr in tri]
+            return {frozenset(tuple(x) for x in tr) for tr in tri[keep]}
+
+        ta, tb = on_face(a), on_face(b)
+        assert ta == tb and len(ta) == 2 * (sides[0] - 1) * (sides[1] - 1)
+        seams_seen += f.seam is not None
+    assert seams_seen > 0 or not t.periodic
+
+
+def test_swap_seam_makes_the_samples_invariant():
+    _, _, _, s, _ = _built("twisted")
+    u, v = s.params[0], s.params[1]
+    assert np.allclose(u, v, atol=1e-12) and np.allclose(u, 1 - u[::-1], atol=1e-12)
+
+
+def test_pool_gives_the_same_pieces():
+    vol, t, fmap, sampling, pieces = _built("twisted")
+    seen = []
+    pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
+                       progress=lambda i, n, pid: seen.append((i, n, pid)))
+    assert [p.id for p in pooled] == [p.id for p in pieces]
+    for p, q in zip(pieces, pooled):
+        assert np.array_equal(p.mesh.vertices, q.mesh.vertices) and np.array_equal(p.mesh.faces, q.mesh.faces)
+    assert sorted(i for i, _, _ in seen) == list(range(1, len(pieces) + 1))
+    assert {pid for _, _, pid in seen} == {p.id for p in pieces}
+
+
+def test_refinement_is_adaptive():
+    # the bend is along w only: straight u and v lines need few samples, the curved w direction many
+    _, _, _, s, _ = _built("bent")
+    assert len(s.params[2]) > 2 * max(len(s.params[0]), len(s.params[1]))
+
+
+@settings(max_examples=5, deadline=None)
+@given(st.tuples(st.integers(1, 3), st.integers(1, 2), st.integers(1, 3)), st.sampled_from([0.3, 0.6]))
+def test_any_grid_tiles_the_bent_bar(grid, tol):
+    vol = _ring(sweep=120.0, n_w=6)
+    t = tile(vol, grid)
+    pieces = C.compose(t, Map(vol, None, _orientation(vol)), [], tol)
+    for p in pieces:
+        G.check_solid(p.mesh, p.id)
+    assert sum(p.volume for p in pieces) == pytest.approx(_volume_by_quadrature(vol), rel=1e-2)
+
+
+def test_tolerance_must_be_positive():
+    vol = _box()
+    with pytest.raises(GeometryError, match=r"output.tolerance: must be > 0 mm \(got 0\)"):
+        C.sample_parameters(tile(vol, (1, 1, 1)), Map(vol), 0.0)
+
+
+def test_tolerance_too_fine(monkeypatch):
+    monkeypatch.setattr(C, "_MAX_SAMPLES", 8)
+    vol = _ring(sweep=120.0, n_w=6)
+    with pytest.raises(GeometryError, match="needs more than 8 samples along w"):
+        C.sample_parameters(tile(vol, (1, 1, 1)), Map(vol, None, _orientation(vol)), 0.01)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# joints
+
+
+def _joint_spec(style="pin", space="physical"):
+    return SimpleNamespace(style=style, shape="cylinder", radius=None, length=None, clearance=0.15,
+                           axial_clearance=0.3, space=space)
+
+
+@pytest.mark.parametrize("style,space", [("pin", "physical"), ("dowel", "physical"), ("pin", "domain")])
+def test_joints_keep_pieces_single_closed_solids(style, space):
+    from volpuzzle import joint as J
+
+    vol, t, fmap, sampling, plain = _built("twisted")
+    joints = J.plan_joints(t, fmap, _joint_spec(style, space))
+    assert joints
+    pieces = C.compose(t, fmap, joints, sampling.tolerance, sampling=sampling)
+    by_cell = {p.cell: p for p in pieces}
+    for p, q in zip(pieces, plain):
+        G.check_solid(p.mesh, p.id)
+        assert p.body_volume == pytest.approx(q.body_volume)
+    for j in joints:
+        for c in (j.pin_cell, j.hole_cell):
+            assert by_cell[c].volume != pytest.approx(by_cell[c].body_volume, rel=1e-6)
+    # a hole is wider and deeper than its pin, so the joints take volume away overall
+    assert sum(p.volume for p in pieces) < sum(p.body_volume for p in pieces)
+    # pins fit into holes with clearance: neighbours still do not overlap. In the domain a pin that crosses the
+    # seam of this (kinked, C0) ring is mapped through the other side's Jacobian, so only inner faces are held to it.
+    for f in t.faces:
+        if space == "domain" and f.seam is not None:
+            continue
+        a, b = by_cell[f.lower], by_cell[f.upper]
+        inter = G.boolean(G.from_trimesh(a.mesh, a.id), G.from_trimesh(b.mesh, b.id), "intersection", a.id)
+        assert inter.volume() <= 1e-6 * min(a.volume, b.volume)
+    if space == "domain":
+        # the mapped pins were split until their edges bend by less than the tolerance: many more triangles
+        assert sum(p.triangles for p in pieces) > sum(p.triangles for p in plain)
+
+
+def test_domain_refinement_splits_bent_edges():
+    # one long straight edge in the domain across a curved map gets split until its mapped midpoints fit
+    vol = _ring(sweep=120.0, n_w=6)
+    fmap = Map(vol, None, _orientation(vol))
+    q = np.array([[0.5, 0.5, 0.0], [0.5, 0.5, 1.0], [0.2, 0.5, 0.5]])
+    f = np.array([[0, 1, 2]])
+    q2, xyz, f2 = C._refine(q, fmap.evaluate(q), f, np.zeros(3, dtype=int), fmap.evaluate, 0.05)
+    assert len(f2) > 8
+    e = np.concatenate([f2[:, [0, 1]], f2[:, [1, 2]], f2[:, [2, 0]]])
+    mid = fmap.evaluate(0.5 * (q2[e[:, 0]] + q2[e[:, 1]]))
+    assert np.max(np.linalg.norm(mid - 0.5 * (xyz[e[:, 0]] + xyz[e[:, 1]]), axis=1)) <= 0.05

@@ -1,0 +1,116 @@
+"""geometry: the manifold3d / trimesh bridge raises GeometryError (naming the piece) instead of passing on a failed
+status or a broken mesh."""
+
+import manifold3d
+import numpy as np
+import pytest
+import trimesh
+
+from volpuzzle import geometry as G
+from volpuzzle.errors import GeometryError
+
+
+def _cube_mesh():
+    return trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+
+
+def test_round_trip_keeps_volume_and_vertices():
+    box = _cube_mesh().subdivide()
+    m = G.from_trimesh(box, "p0-0-0")
+    back = G.to_trimesh(m)
+    assert m.volume() == pytest.approx(8.0)
+    assert len(back.vertices) == len(box.vertices)  # grid vertices of flat faces are not merged away
+    G.check_solid(back, "p0-0-0")
+
+
+def test_not_manifold_names_piece_and_status():
+    box = _cube_mesh()
+    faces = np.vstack([box.faces, box.faces[:1]])  # one triangle twice: an edge with three triangles
+    with pytest.raises(GeometryError, match=r"p1-2-3.*NotManifold"):
+        G.manifold_from_mesh(box.vertices, faces, "p1-2-3")
+
+
+def test_non_finite_vertices_refused():
+    box = _cube_mesh()
+    v = box.vertices.copy()
+    v[0, 0] = np.nan
+    with pytest.raises(GeometryError, match="p0-0-1: .*non-finite"):
+        G.manifold_from_mesh(v, box.faces, "p0-0-1")
+
+
+def test_empty_solid_refused():
+    with pytest.raises(GeometryError, match="encloses no volume"):
+        G.manifold_from_mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=int), "p0-0-0")
+
+
+def test_boolean_ops_and_unknown_op():
+    a = manifold3d.Manifold.cube((1, 1, 1))
+    b = manifold3d.Manifold.cube((1, 1, 1)).translate((0.5, 0.5, 0.5))
+    assert G.boolean(a, b, "union", "x").volume() == pytest.approx(1.875)
+    assert G.boolean(a, b, "difference", "x").volume() == pytest.approx(0.875)
+    assert G.boolean(a, b, "intersection", "x").volume() == pytest.approx(0.125)
+    with pytest.raises(GeometryError, match="unknown boolean operation 'xor'"):
+        G.boolean(a, b, "xor", "x")
+
+
+def test_boolean_with_failed_operand_raises():
+    bad = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=np.zeros((3, 3)),
+                                                tri_verts=np.array([[0, 1, 2], [0, 1, 2]], dtype=np.uint64)))
+    assert bad.status() != manifold3d.Error.NoError or bad.is_empty()
+    if bad.status() != manifold3d.Error.NoError:
+        with pytest.raises(GeometryError, match="p9: .*status"):
+            G.boolean(manifold3d.Manifold.cube((1, 1, 1)), bad, "union", "p9")
+
+
+def test_check_solid_open_mesh():
+    box = _cube_mesh()
+    with pytest.raises(GeometryError, match="not closed"):
+        G.check_solid(trimesh.Trimesh(box.vertices, box.faces[1:], process=False), "p")
+
+
+def test_check_solid_inconsistent_winding():
+    box = _cube_mesh()
+    f = box.faces.copy()
+    f[0] = f[0, [0, 2, 1]]
+    with pytest.raises(GeometryError, match="consistently oriented"):
+        G.check_solid(trimesh.Trimesh(box.vertices, f, process=False), "p")
+
+
+def test_check_solid_two_bodies():
+    a = _cube_mesh()
+    b = _cube_mesh()
+    b.apply_translation((5, 0, 0))
+    both = trimesh.util.concatenate([a, b])
+    with pytest.raises(GeometryError, match="2 separate bodies"):
+        G.check_solid(both, "p")
+
+
+def test_check_solid_inward_normals():
+    box = _cube_mesh()
+    with pytest.raises(GeometryError, match="normals must face outward"):
+        G.check_solid(trimesh.Trimesh(box.vertices, box.faces[:, [0, 2, 1]], process=False), "p")
+
+
+def test_weld_collapses_a_face_to_a_line():
+    # a wedge: the box's x=0 face squeezed onto the z axis, as at a cone's axis
+    box = _cube_mesh().subdivide()
+    v = box.vertices.copy()
+    v[np.isclose(v[:, 0], -1.0), 1] = 0.0
+    v[np.isclose(v[:, 0], -1.0), 0] = -1.0
+    v2, f2 = G.weld(v, box.faces, 1e-9)
+    mesh = trimesh.Trimesh(v2, f2, process=False)
+    G.check_solid(mesh, "wedge")
+    assert mesh.volume == pytest.approx(6.0)  # the squeeze reaches only to the next grid plane, x = 0
+
+
+def test_weld_cancels_coincident_opposite_faces():
+    # two unit cubes sharing a face, given as one triangle soup: the inner face pair cancels, leaving one box
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    # the mirror image across x = 0.5 has the same triangles on that face, in the opposite orientation
+    bv = a.vertices * np.array([-1.0, 1.0, 1.0]) + np.array([1.0, 0.0, 0.0])
+    v = np.vstack([a.vertices, bv])
+    f = np.vstack([a.faces, a.faces[:, [0, 2, 1]] + len(a.vertices)])
+    v, f = G.weld(v, f, 1e-9)
+    mesh = trimesh.Trimesh(v, f, process=False)
+    G.check_solid(mesh, "pair")
+    assert mesh.volume == pytest.approx(2.0)
