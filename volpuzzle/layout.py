@@ -88,6 +88,8 @@ def print_orientation(mesh, pin_directions=()):
     t2d, _ = trimesh.bounds.oriented_bounds_2D(pts)
     spin = np.eye(4)
     spin[:2, :2] = t2d[:2, :2]
+    if np.linalg.det(spin[:2, :2]) < 0:
+        spin[1, :2] *= -1  # a mirror would print the piece's mirror image; flipping one row keeps the box aligned
     return spin @ rot
 
 

@@ -180,23 +180,40 @@ def joint_gap_volume(joint):
     return hole - math.pi * r ** 2 * length
 
 
+def _check_plate(spec, tiling, fmap):
+    """Refuse a plate smaller than the largest piece before any mesh is built, naming the size needed."""
+    import trimesh
+
+    plate = np.sort(np.asarray(spec.output.plate, float))[::-1]
+    need = np.zeros(2)
+    t = np.linspace(0, 1, 5)
+    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    for cell in tiling.cells.values():
+        lo, hi = cell.box
+        pts = fmap.evaluate(lo + grid * (hi - lo))
+        _, ext = trimesh.bounds.oriented_bounds(pts)
+        need = np.maximum(need, np.sort(ext)[::-1][:2])
+    need = need + 2 * spec.output.spacing
+    if np.any(need > plate + 1e-9):
+        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with spacing "
+                        f"(got {list(spec.output.plate)}, expected at least [{np.ceil(need[0]):.0f}, "
+                        f"{np.ceil(need[1]):.0f}])", source=spec.source)
+
+
 def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     from .check import check_pieces
     from .compose import compose
-    from .export import report_piece_entry, write_build
+    from .export import check_target, piece_colors, report_piece_entry, write_build
     from .spec import load_spec, spec_to_dict, with_overrides
 
     t_start = time.perf_counter()
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed)
-    target = Path(spec.output.directory)
-    if target.exists() and not force:
-        from .errors import ExportError
-
-        raise ExportError(f"{target}: the output folder exists; use --force to replace it")
+    target = check_target(Path(spec.output.directory), force)
     timer = Timer()
     stages = prepare(spec, timer, progress)
+    _check_plate(spec, stages["tiling"], stages["fmap"])
     jobs = jobs or os.cpu_count() or 1
     with timer("compose", progress):
         pieces = compose(stages["tiling"], stages["fmap"], stages["joints"], spec.output.tolerance, jobs=jobs,
@@ -209,30 +226,71 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         checks["joint_gaps_mm3"] = round(gaps, 3)
     if not checks["passed"]:
         raise GeometryError(_failed_checks_message(checks))
+    dowels = []
+    if spec.joints.style == "dowel":
+        from .geometry import to_trimesh
+        from .joint import dowel_solid
+
+        dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+    colors = piece_colors(len(pieces))
+    with timer("layout", progress):
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors)
     ext = spec.output.format
+    plate_of = {pl.name: pl.plate for pl in placements}
+    entries = []
+    for p in pieces:
+        entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
+        entry["plate"] = plate_of.get(p.id)
+        entries.append(entry)
     report = {
         "volpuzzle_version": __version__,
         "spec": spec_to_dict(spec),
         "model": stages["model_report"],
         "randomize": stages["randomize_report"],
-        "pieces": [report_piece_entry(p, f"pieces/{p.id}.{ext}") for p in pieces],
+        "pieces": entries,
         "joints": [j.to_report() for j in joints],
         "checks": checks,
-        "plates": [],
+        "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
         "assembly_order": [p.id for p in pieces],
         "timings_s": timer.timings,
     }
-    dowels = []
-    if spec.joints.style == "dowel":
-        from .joint import dowel_solid
-        from .geometry import to_trimesh
-
-        dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
     with timer("export", progress):
-        write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels)
+        report["timings_s"] = timer.timings
+        write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras)
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
+
+
+def _layout(spec, pieces, dowels, joints, colors):
+    """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
+    from .io.threemf import write_3mf
+    from .layout import layout
+    from .preview import render_preview
+
+    pin_dirs = {}
+    for j in joints:
+        if j.style == "pin":
+            pid = "p" + "-".join(str(i) for i in j.pin_cell)
+            pin_dirs.setdefault(pid, []).append(np.asarray(j.direction))
+    parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
+    rgb = {p.id: c for p, c in zip(pieces, colors)}
+    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs)
+    meshes = dict(parts)
+    extras = {}
+    for pl in plates:
+        def write_plate(path, pl=pl):
+            objs = []
+            for place in placements:
+                if place.plate != pl.index:
+                    continue
+                m = meshes[place.name]
+                v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
+                objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
+            write_3mf(path, objs)
+        extras[pl.file] = write_plate
+    extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], colors, title=spec.name)
+    return placements, plates, extras
 
 
 def _failed_checks_message(checks):

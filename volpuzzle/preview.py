@@ -47,7 +47,6 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.35, title=N
 
     centers = np.array([m.centroid for m in meshes])
     center = centers.mean(axis=0)
-    extent = np.ptp(np.concatenate([m.bounds for m in meshes]), axis=0).max()
     exploded = (centers - center) * explode
     fig = plt.figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
     for k, (offs, label) in enumerate(((np.zeros_like(centers), "assembled"), (exploded, "exploded"))):
@@ -55,10 +54,11 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.35, title=N
         tris, cols = _triangles(list(zip(meshes, colors)), offs)
         coll = Poly3DCollection(tris, facecolors=cols, edgecolors="none", linewidths=0, antialiased=False)
         ax.add_collection3d(coll)
-        half = extent * (0.5 + (explode if k else 0.0)) * 0.75
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
-        ax.set_zlim(center[2] - half, center[2] + half)
+        lo, hi = tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0)
+        mid, half = (lo + hi) / 2, (hi - lo).max() * 0.5
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=28, azim=-60)
         ax.set_axis_off()
