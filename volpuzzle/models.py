@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from .errors import SpecError
+from .errors import ModelError, SpecError
 from .spline import basis
 from .spline.volume import Volume
 
@@ -392,7 +392,7 @@ _ORDERED = {
     "quarter-torus": ("minor_radius", "major_radius", 1.0),
     "torus": ("minor_radius", "major_radius", 1.0),
     "twisted-torus": ("minor_radius", "major_radius", SQRT_HALF),  # the square's corners must clear the axis
-    "generalized-torus": ("minor_radius", "major_radius", 0.5),  # the bottom corners turn on radius R/2
+    "generalized-torus": ("minor_radius", "major_radius", 0.4),  # corners turn on radius R/2; 0.4 certifies
     "sphere-shell": ("inner_radius", "outer_radius", 1.0),
     "duck-shell": ("thickness", "size", 0.1),
 }
@@ -455,4 +455,14 @@ def validate_builtin(params, key="model.builtin"):
 def make_builtin(params, key="model.builtin"):
     """Build a builtin from its spec dict, e.g. {'type': 'twisted-torus', 'major_radius': 60} -> Volume."""
     kind, values = validate_builtin(params, key)
-    return BUILTINS[kind][0](**values)
+    vol = BUILTINS[kind][0](**values)
+    # the parameter limits above are meant to keep every shape unfolded; the certificate makes sure (~0.05 s)
+    from .spline.jacobian import certify_positive
+
+    cert = certify_positive(vol)
+    if not cert.ok:
+        shown = ", ".join(f"{k}: {_fmt(v)}" for k, v in values.items())
+        raise ModelError(f"{key}: the {kind} with {shown} folds or is not certified right-handed "
+                         f"({cert.message} at uvw {np.round(cert.where_uvw, 4).tolist()}); expected smaller "
+                         f"thickness or radii relative to the size")
+    return vol
