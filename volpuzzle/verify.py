@@ -23,6 +23,23 @@ def _jacobian():
     return jacobian
 
 
+def _certify(vol, sign, max_depth, js=None):
+    """certify_positive / certify_negative, reusing an already computed JacobianSpline when the kernel takes one."""
+    jac = _jacobian()
+    fn = jac.certify_positive if sign > 0 else jac.certify_negative
+    if js is not None:
+        try:
+            return fn(vol, max_depth=max_depth, js=js)
+        except TypeError:
+            pass
+    return fn(vol, max_depth=max_depth)
+
+
+def _absolute(cert):
+    """The certificate's smallest coefficient in det J units (the kernel reports it relative to `scale`)."""
+    return float(cert.min_coefficient) * float(getattr(cert, "scale", 1.0) or 1.0)
+
+
 def _fmt_uvw(uvw):
     return "(" + ", ".join(f"{float(x):.3g}" for x in np.asarray(uvw, dtype=float).ravel()[:3]) + ")"
 
@@ -32,7 +49,7 @@ def _fmt_num(x):
 
 
 def _certifies(family, amplitude, max_depth):
-    return _jacobian().certify_positive(family(amplitude), max_depth=max_depth).status == "proved"
+    return _certify(family(amplitude), +1, max_depth).status == "proved"
 
 
 def safe_amplitude(family, hi, max_depth=_DEFAULT_DEPTH, rel_tol=0.01, max_iter=16):
@@ -89,14 +106,14 @@ def verify_warp(family, amplitude, max_depth=_DEFAULT_DEPTH):
     """
     amplitude = float(amplitude)
     R = family(amplitude)
-    cert = _jacobian().certify_positive(R, max_depth=max_depth)
+    cert = _certify(R, +1, max_depth)
     if cert.status == "proved":
-        return {"amplitude": amplitude, "jacobian_min_coefficient": float(cert.min_coefficient),
+        return {"amplitude": amplitude, "jacobian_min_coefficient": _absolute(cert),
                 "bijective": True, "status": cert.status}
     safe = _quotable(family, safe_amplitude(family, amplitude, max_depth), max_depth)
     what = "folds the map R" if cert.status == "disproved" else "cannot be certified one-to-one"
     where = _fmt_uvw(cert.where_uvw) if cert.where_uvw is not None else "(unknown)"
-    detail = f"smallest Jacobian coefficient {_fmt_num(cert.min_coefficient)} at uvw {where}"
+    detail = f"smallest Jacobian coefficient {_fmt_num(_absolute(cert))} at uvw {where}"
     if cert.status == "disproved" and cert.value is not None:
         detail += f", det J = {_fmt_num(cert.value)} there"
     raise GeometryError(
@@ -144,16 +161,19 @@ def verify_model(vol, max_depth=_DEFAULT_DEPTH):
     A left-handed model (det J < 0 everywhere) is valid. A degenerate axis (det J = 0 on a face, as at a sphere's
     pole or a cylinder's axis) is allowed with a note. A fold (det J changes sign) raises ModelError with the place.
     """
-    jac = _jacobian()
-    bez = jac.jacobian_bezier(vol)
-    out = {"jacobian_min_coefficient": float(bez.min), "jacobian_max_coefficient": float(bez.max),
+    bez = _jacobian().jacobian_bezier(vol)
+    # For a rational M the coefficients bound W^4 det J; lower/upper are the kernel's bounds on det J itself.
+    lo, hi = float(getattr(bez, "lower", bez.min)), float(getattr(bez, "upper", bez.max))
+    if lo == hi == 0.0 and (bez.min != 0 or bez.max != 0):
+        lo, hi = float(bez.min), float(bez.max)
+    out = {"jacobian_min_coefficient": lo, "jacobian_max_coefficient": hi,
            "degenerate": False, "certified": True, "notes": []}
-    pos = jac.certify_positive(vol, max_depth=max_depth)
+    pos = _certify(vol, +1, max_depth, bez)
     if pos.status in ("proved", "degenerate"):
         out["handedness"] = "right"
         cert = pos
     else:
-        neg = jac.certify_negative(vol, max_depth=max_depth)
+        neg = _certify(vol, -1, max_depth, bez)
         if neg.status in ("proved", "degenerate"):
             out["handedness"] = "left"
             cert = neg
@@ -166,7 +186,7 @@ def verify_model(vol, max_depth=_DEFAULT_DEPTH):
             xyz = vol.evaluate(uvw.reshape(1, 3))[0]
             raise ModelError(
                 f"model folds: det J changes sign near uvw {_fmt_uvw(uvw)}, xyz {_fmt_uvw(xyz)} mm "
-                f"(det J ranges over about [{_fmt_num(bez.min)}, {_fmt_num(bez.max)}]; expected one sign on the "
+                f"(det J ranges over about [{_fmt_num(lo)}, {_fmt_num(hi)}]; expected one sign on the "
                 f"whole domain: fix the control points there)")
         else:
             # Neither sign proved nor a sign change found within max_depth: det J touches zero somewhere inside.
@@ -178,7 +198,7 @@ def verify_model(vol, max_depth=_DEFAULT_DEPTH):
                 c = pos if pos.status != "disproved" else neg
                 out["notes"].append(
                     f"det J could not be certified to keep one sign (smallest coefficient "
-                    f"{_fmt_num(c.min_coefficient)} near uvw {_fmt_uvw(c.where_uvw)}); sampled values agree in sign")
+                    f"{_fmt_num(_absolute(c))} near uvw {_fmt_uvw(c.where_uvw)}); sampled values agree in sign")
                 return out
             bad = pos if pos.status == "disproved" else neg
             raise ModelError(
