@@ -1,0 +1,317 @@
+"""Mesh input (STL, OBJ, PLY, OFF, 3MF, GLB) for the mesh-in-a-cage mode (paper section 5).
+
+A mesh model must be ONE closed, consistently oriented solid with outward normals: it is intersected with the cage's
+pieces, and a Boolean with an open or inside-out mesh gives garbage without failing. Anything else is refused with a
+ModelError that names the file, what is wrong (counts of open edges, non-manifold edges, inconsistently oriented edges,
+bodies) and where (a point near the first fault, in the file's coordinates), or repaired first when asked.
+
+STL is read by our own reader rather than trimesh's: trimesh silently returns an empty mesh for a binary file whose
+triangle count disagrees with its size, or for an ASCII file without `endsolid`, and raises a bare numpy error on a
+facet with four vertices; users deserve the file, the line and the reason. STL facet normals are ignored (every
+slicer recomputes them from the vertex order), so a missing, zero, wrong or NaN normal is not an error.
+Other formats go through trimesh.load, with every exception turned into a ModelError.
+"""
+
+import os
+import struct
+
+import numpy as np
+import trimesh
+
+from ..errors import ModelError
+
+EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
+_TRIMESH_TYPES = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf", ".glb": "glb"}
+
+__all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_problems", "check_mesh", "repair_mesh"]
+
+
+def _err(path, message):
+    return ModelError(f"{path}: {message}")
+
+
+# --- STL ------------------------------------------------------------------------------------------------------------
+def _read_stl(path, data):
+    """bytes of an STL file -> triangles (n, 3, 3) float64, or ModelError."""
+    size = len(data)
+    if size >= 84:
+        (count,) = struct.unpack("<I", data[80:84])
+        if 84 + 50 * count == size:
+            return _read_stl_binary(data, count)
+    if data.lstrip()[:5].lower() == b"solid":
+        return _read_stl_ascii(path, data)
+    if size < 84:
+        raise _err(path, f"not an STL file: {size} bytes is too short for a binary STL header (84 bytes) "
+                         "and the text does not start with 'solid'")
+    (count,) = struct.unpack("<I", data[80:84])
+    held = (size - 84) / 50
+    raise _err(path, f"binary STL: the header says {count} triangles ({84 + 50 * count} bytes) but the file has "
+                     f"{size} bytes ({held:g} triangles after the header): truncated, or a wrong triangle count")
+
+
+def _read_stl_binary(data, count):
+    rec = np.dtype([("normal", "<f4", (3,)), ("tri", "<f4", (3, 3)), ("attr", "<u2")])
+    arr = np.frombuffer(data, dtype=rec, count=count, offset=84)
+    return arr["tri"].astype(np.float64)
+
+
+def _read_stl_ascii(path, data):
+    text = data.decode("latin-1")
+    tris, loop, facet_line, in_facet = [], None, 0, False
+    nfacet = 0
+    ended = False
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        tok = line.split()
+        if not tok:
+            continue
+        key = tok[0].lower()
+        if key == "solid":  # a header; several solids in one file are all read
+            if in_facet:
+                raise _err(path, f"line {lineno}: 'solid' inside facet {nfacet} (line {facet_line})")
+            ended = False
+            continue
+        if ended:
+            raise _err(path, f"line {lineno}: text after 'endsolid' ({line.strip()[:40]!r})")
+        if key == "facet":
+            if in_facet:
+                raise _err(path, f"line {lineno}: a new facet starts before 'endfacet' of facet {nfacet} "
+                                 f"(line {facet_line})")
+            in_facet, facet_line, loop = True, lineno, None
+            nfacet += 1
+        elif key == "outer":
+            if not in_facet:
+                raise _err(path, f"line {lineno}: 'outer loop' outside a facet")
+            loop = []
+        elif key == "vertex":
+            if loop is None:
+                raise _err(path, f"line {lineno}: 'vertex' outside 'outer loop'")
+            try:
+                xyz = [float(t) for t in tok[1:]]
+            except ValueError:
+                raise _err(path, f"line {lineno}: vertex coordinates are not numbers ({line.strip()[:60]!r})") from None
+            if len(xyz) != 3:
+                raise _err(path, f"line {lineno}: a vertex needs 3 coordinates, got {len(xyz)}")
+            if not all(np.isfinite(xyz)):
+                raise _err(path, f"line {lineno}: non-finite vertex coordinate ({line.strip()[:60]!r})")
+            loop.append(xyz)
+        elif key == "endloop":
+            if loop is None:
+                raise _err(path, f"line {lineno}: 'endloop' without 'outer loop'")
+            if len(loop) != 3:
+                raise _err(path, f"facet {nfacet} (line {facet_line}) has {len(loop)} vertices; STL facets are "
+                                 "triangles with exactly 3")
+        elif key == "endfacet":
+            if not in_facet or loop is None:
+                raise _err(path, f"line {lineno}: 'endfacet' without a facet and its 'outer loop'")
+            if len(loop) != 3:
+                raise _err(path, f"facet {nfacet} (line {facet_line}) has {len(loop)} vertices; STL facets are "
+                                 "triangles with exactly 3")
+            tris.append(loop)
+            in_facet, loop = False, None
+        elif key == "endsolid":
+            if in_facet:
+                raise _err(path, f"line {lineno}: 'endsolid' inside facet {nfacet} (line {facet_line})")
+            ended = True  # the name after endsolid is not checked: many writers get it wrong
+        else:
+            raise _err(path, f"line {lineno}: unexpected {tok[0][:30]!r} in an ASCII STL (expected facet, outer loop, "
+                             "vertex, endloop, endfacet or endsolid)")
+    if in_facet:
+        raise _err(path, f"truncated: the file ends inside facet {nfacet} (line {facet_line})")
+    # a missing 'endsolid' after complete facets loses nothing: accepted
+    return np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+
+
+# --- reading ----------------------------------------------------------------------------------------------------------
+def read_mesh(path):
+    """Read a mesh file as it is (model units, no checks beyond readability) -> trimesh.Trimesh."""
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if not os.path.exists(path):
+        raise _err(path, "no such file (expected a mesh: " + ", ".join(EXTENSIONS) + ")")
+    if os.path.isdir(path):
+        raise _err(path, "is a directory, expected a mesh file")
+    if ext not in EXTENSIONS:
+        raise _err(path, f"unsupported mesh extension {ext or '(none)'!r} (expected one of " + ", ".join(EXTENSIONS)
+                   + ")")
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise _err(path, f"cannot be read ({e.strerror})") from None
+    if not data.strip():
+        raise _err(path, "the file is empty, expected a closed triangle mesh")
+    if ext == ".stl":
+        tris = _read_stl(path, data)
+        if len(tris) == 0:
+            raise _err(path, "the STL holds no triangles")
+        # process=True merges equal vertices, which is what turns a triangle soup into a connected mesh
+        return trimesh.Trimesh(**trimesh.triangles.to_kwargs(tris), process=True)
+    try:
+        import io
+
+        loaded = trimesh.load(io.BytesIO(data), file_type=_TRIMESH_TYPES[ext], force="mesh", process=True)
+    except Exception as e:  # trimesh raises anything from ValueError to IndexError on a bad file
+        raise _err(path, f"cannot read as {ext[1:].upper()}: {type(e).__name__}: {str(e)[:200]}") from None
+    if isinstance(loaded, trimesh.Scene):  # force='mesh' gives an empty Scene when nothing is in it
+        loaded = loaded.dump(concatenate=True) if len(loaded.geometry) else trimesh.Trimesh()
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise _err(path, f"holds no triangle mesh (got {type(loaded).__name__})")
+    v = np.asarray(loaded.vertices, dtype=float)
+    if len(v) and not np.all(np.isfinite(v)):
+        raise _err(path, f"{int(np.sum(~np.isfinite(v).all(axis=1)))} vertices have non-finite coordinates (NaN or "
+                         "infinity)")
+    return loaded
+
+
+# --- checking ---------------------------------------------------------------------------------------------------------
+def _near(mesh, edges):
+    p = mesh.vertices[edges[0]].mean(axis=0)
+    return "(" + ", ".join(f"{x:.4g}" for x in p) + ")"
+
+
+def mesh_problems(mesh):
+    """What keeps `mesh` from being one closed, oriented solid -> list of messages (empty when it is one)."""
+    faces = np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return ["zero faces: the file holds no triangles"]
+    out = []
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    und = np.sort(directed, axis=1)
+    uniq, counts = np.unique(und, axis=0, return_counts=True)
+    open_e, nonman = uniq[counts == 1], uniq[counts > 2]
+    if len(open_e):
+        out.append(f"{len(open_e)} open (boundary) edges: the surface has holes, near {_near(mesh, open_e)}")
+    if len(nonman):
+        out.append(f"{len(nonman)} non-manifold edges shared by more than two triangles, near {_near(mesh, nonman)}")
+    # two triangles that agree in orientation run along their shared edge the same way
+    duniq, dcount = np.unique(directed, axis=0, return_counts=True)
+    incons = duniq[dcount > 1]
+    if len(incons):
+        out.append(f"{len(incons)} edges where neighbouring triangles are inconsistently oriented (flipped faces), "
+                   f"near {_near(mesh, incons)}")
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(faces))
+    nb = int(labels.max()) + 1 if len(labels) else 0
+    if nb > 1:
+        sizes = np.sort(np.bincount(labels))[::-1]
+        shown = ", ".join(str(s) for s in sizes[:5]) + (", ..." if nb > 5 else "")
+        out.append(f"{nb} separate bodies (triangles per body: {shown}); expected one solid")
+    if not out:
+        with np.errstate(all="ignore"):
+            vol = float(mesh.volume)
+        if abs(vol) <= 1e-12 * float(np.max(mesh.extents)) ** 3:
+            out.append("encloses no volume (a flat or two-sided surface)")
+        elif not vol > 0:
+            out.append(f"encloses volume {vol:.4g} (units^3): the triangles face inward (expected outward normals, "
+                       "positive volume)")
+    return out
+
+
+def check_mesh(mesh, path):
+    problems = mesh_problems(mesh)
+    if problems:
+        hint = "" if problems[0].startswith("zero faces") else "; model.repair: true may fix holes and orientation"
+        raise _err(path, "not one closed, consistently oriented solid: " + "; ".join(problems) + hint)
+    return mesh
+
+
+def _simple_loops(loop):
+    """Split a closed vertex loop that passes a vertex twice into loops that do not (else a fan over it would
+    give that vertex's spoke four triangles)."""
+    out, stack, where = [], [], {}
+    for v in loop + [loop[0]]:
+        if v in where:
+            i = where[v]
+            sub = stack[i:]
+            for u in sub[1:]:
+                where.pop(u, None)
+            del stack[i + 1:]
+            if len(sub) >= 3:
+                out.append(sub)
+        else:
+            where[v] = len(stack)
+            stack.append(v)
+    return out
+
+
+def _fill_boundary_loops(mesh):
+    """Close each hole by a fan of triangles from its loop's centroid, oriented with the surrounding surface."""
+    faces = np.asarray(mesh.faces)
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    und = np.sort(directed, axis=1)
+    _, inv, counts = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+    bnd = directed[counts[inv.ravel()] == 1]
+    if len(bnd) == 0:
+        return mesh
+    nxt = {}
+    for a, b in bnd:
+        nxt.setdefault(int(b), []).append(int(a))  # the fill runs against the surface: b -> a
+    verts = [np.asarray(mesh.vertices)]
+    new_faces = [faces]
+    n = len(mesh.vertices)
+    # Each boundary vertex has as many edges in as out, so walking unused edges always comes back to the start;
+    # a vertex where two holes touch is just passed twice.
+    for start in list(nxt):
+        while nxt.get(start):
+            loop, cur = [start], nxt[start].pop()
+            while cur != start and nxt.get(cur):
+                loop.append(cur)
+                cur = nxt[cur].pop()
+            if cur != start:
+                continue  # a dangling boundary: left for the check to report
+            for simple in _simple_loops(loop):
+                c = mesh.vertices[simple].mean(axis=0)
+                verts.append(c[None])
+                new_faces.append(np.array([[simple[i], simple[(i + 1) % len(simple)], n]
+                                           for i in range(len(simple))]))
+                n += 1
+    return trimesh.Trimesh(np.concatenate(verts), np.concatenate(new_faces), process=True)
+
+
+def repair_mesh(mesh):
+    """trimesh's repairs plus hole filling: merge vertices, drop degenerate and duplicate faces, fill holes,
+    fix winding and turn normals outward -> a new Trimesh (check it again)."""
+    m = mesh.copy()
+    m.merge_vertices()
+    m.update_faces(m.nondegenerate_faces())
+    m.update_faces(m.unique_faces())
+    m.remove_unreferenced_vertices()
+    trimesh.repair.fix_winding(m)
+    trimesh.repair.fill_holes(m)
+    if not m.is_watertight:
+        m = _fill_boundary_loops(m)
+        trimesh.repair.fix_winding(m)
+    trimesh.repair.fix_inversion(m, multibody=True)
+    return m
+
+
+def load_mesh_scaled(path, unit_scale=1.0, size=None, repair=False):
+    """Read, check (or repair then check) and scale a mesh -> (trimesh.Trimesh in mm, scale mm per file unit).
+
+    The scale is about the origin, like a NURBS model's, so a NURBS cage in the same units needs the same factor.
+    """
+    mesh = read_mesh(path)
+    if repair:
+        problems = mesh_problems(mesh)
+        if problems:
+            mesh = repair_mesh(mesh)
+            left = mesh_problems(mesh)
+            if left:
+                raise _err(path, "not one closed, consistently oriented solid, even after repair (model.repair): "
+                           + "; ".join(left) + " (before repair: " + "; ".join(problems) + ")")
+    else:
+        check_mesh(mesh, path)
+    scale = float(unit_scale)
+    if size is not None:
+        extent = float(np.max(mesh.extents)) * scale
+        if not extent > 0:
+            raise _err(path, "the mesh has zero extent; cannot scale it to model.size")
+        scale *= float(size) / extent
+    if scale != 1.0:
+        mesh.apply_scale(scale)
+    return mesh, scale
+
+
+def load_mesh(path, unit_scale=1.0, size=None, repair=False):
+    """A closed, outward-oriented solid in mm -> trimesh.Trimesh: units first, then `size` = largest bounding-box
+    side in mm. ModelError naming the file for anything unreadable or not one closed solid."""
+    return load_mesh_scaled(path, unit_scale, size, repair)[0]
