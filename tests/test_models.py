@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from volpuzzle import models
-from volpuzzle.errors import SpecError
+from volpuzzle.errors import ModelError, SpecError
 from volpuzzle.spline import knots as knotlib
 
 try:  # the kernel's measure and certificate, when they exist; plain quadrature and sampling otherwise
@@ -225,3 +225,16 @@ def test_largest_allowed_generalized_torus_still_certifies():
 def test_all_problems_are_listed_at_once():
     probs = _problems({"type": "torus", "major_radius": -1, "minor_radius": True, "colour": "red"})
     assert len(probs) == 3
+
+
+def test_error_a_folded_result_is_refused(monkeypatch):
+    def folded(major_radius=60.0, minor_radius=20.0):
+        vol = models.quarter_torus(major_radius, minor_radius)
+        cps = vol.control_points.copy()
+        cps[2, 2, 1] = cps[0, 0, 1]  # pull an outer control point across the section: det J changes sign
+        return type(vol)(vol.degrees, vol.knots, cps, vol.weights)
+
+    monkeypatch.setitem(models.BUILTINS, "quarter-torus", (folded, {"major_radius": 60.0, "minor_radius": 20.0}))
+    with pytest.raises(ModelError, match=r"model.builtin: the quarter-torus with major_radius: 60, minor_radius: 20 "
+                                         r"folds or is not certified"):
+        models.make_builtin({"type": "quarter-torus"})
