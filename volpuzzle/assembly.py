@@ -1,0 +1,508 @@
+"""assembly: which faces carry a joint, and the order in which the pieces go together.
+
+Why groups and not single pieces. A straight pin lets its two pieces part only along its axis, and once R has made the
+cut faces bumpy a piece cannot slide along a face it shares with a neighbour either: it can only move away from every
+neighbour still present. If every step removed ONE piece, a piece with a joint to the rest would have to have exactly
+one neighbour left at its removal (the one the joint goes to, behind it), so every face of the grid would be counted by
+exactly one removal with one neighbour, and the grid's face graph would need n - 1 edges: it would have to be a tree.
+Any grid with a cycle (2 x 2 x 1 and up) then has pieces without any joint, which simply fall out.
+
+So the plan is a binary tree of splits instead (as a burr puzzle is built): the current block of cells is cut by one
+grid plane into two blocks, and the upper block leaves the lower one along the plane's axis. Every face crossing the
+split is normal to that axis, so the joints across it all point the same way in parameter space; physically they are
+parallel where the split surface is flat. Each split carries one joint (on the face nearest the middle, or the widest
+face when F is known), plus every other crossing face whose mapped normal lies within `max_angle_deg` of that one's, so
+flat splits (a box, a torus cut through its axis) are pinned on every face. The joint graph is connected and every
+piece has a joint. Assembled, each step joins one finished block onto another: a single piece is a block of one.
+
+Pins always sit on the face's lower cell and point along +axis (as volpuzzle.joint places them): pulling the upper
+block off the lower one pulls the hole off the pin, and each cell keeps at most one pin per max face and one hole per
+min face, three of each at most.
+
+A periodic axis is a closed ring with no outer side. It is cut first, into two halves at the face opposite the seam:
+the halves part across both cuts at once (a torus halved through its axis; the joint sits on the middle face, none on
+the seam). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
+
+verify_disassembly replays the plan on the real meshes: each block is swept along the mean direction of its joints to
+the other block, and manifold3d's intersection volume with every piece of the other block must stay below a tiny
+fraction of the piece volume. A failed split is replaced by any other plane split (or single piece) that works; a
+block with none is welded and its pieces are named.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import GeometryError
+
+AXES = "uvw"
+DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
+
+
+def piece_id(index):
+    return "p" + "-".join(str(int(i)) for i in index)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One disassembly step: the cells `moving` leave the cells `fixed` along sign * axis (parameter space).
+
+    moving and fixed together are the block present at that moment (other blocks were taken apart separately);
+    joints: face numbers (into tiling.faces) crossing the split that carry a joint; ring_cut: the split also cuts a
+    periodic seam, so the two halves part across two faces at once.
+    """
+
+    moving: tuple
+    fixed: tuple
+    axis: int
+    sign: int
+    joints: tuple
+    ring_cut: bool = False
+
+    @property
+    def direction(self):
+        """'+u' .. '-w': how `moving` leaves (disassembly)."""
+        return ("+" if self.sign > 0 else "-") + AXES[self.axis]
+
+
+@dataclass(frozen=True)
+class AssemblyPlan:
+    """faces_with_joints: ((face number in tiling.faces, pin_side 'lower' | 'upper'), ...); steps: Step tuple in
+    DISASSEMBLY order (reversed, it is the assembly: each block built before it is joined); assembly_order: cell
+    indices in the order they are first placed."""
+
+    faces_with_joints: tuple
+    steps: tuple
+    assembly_order: tuple
+
+    @property
+    def order(self):
+        """(moving cells, axis, sign) per disassembly step."""
+        return [(s.moving, s.axis, s.sign) for s in self.steps]
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Planning in parameter space
+
+
+def _face_key(f):
+    return (int(f.axis), tuple(f.lower), tuple(f.upper), f.seam is not None)
+
+
+def _face_normals(tiling, fmap, numbers):
+    """Unit mm normals (k, 3) at the centres of the given faces (along +axis of the lower cell) and their areas (k,)."""
+    if fmap is None or not numbers:
+        return None, None
+    uvw, dpar = [], []
+    for n in numbers:
+        f = tiling.faces[n]
+        box = tiling.cells[f.lower].box
+        p = box.mean(axis=0)
+        p[f.axis] = box[1, f.axis]
+        uvw.append(p)
+        b, c = [x for x in range(3) if x != f.axis]
+        dpar.append((box[1, b] - box[0, b]) * (box[1, c] - box[0, c]))
+    _, jac = fmap.evaluate_with_jacobian(np.array(uvw))
+    out, area = [], []
+    orient = int(getattr(fmap, "orientation", 1) or 1)
+    for n, j, dp in zip(numbers, jac, dpar):
+        a = tiling.faces[n].axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        nrm = np.cross(j[:, b], j[:, c])
+        det = float(np.dot(j[:, a], nrm))
+        s = np.sign(det) if abs(det) > 1e-12 else orient
+        size = float(np.linalg.norm(nrm))
+        out.append(s * nrm / size if size > 1e-12 else np.zeros(3))
+        area.append(size * dp)
+    return np.array(out), np.array(area)
+
+
+def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
+    """The tree of splits and the faces that carry joints -> AssemblyPlan.
+
+    fmap (optional, volpuzzle.mapping.Map or anything with evaluate_with_jacobian): used to pick the widest crossing
+    face for a split's joint and to add joints on crossing faces whose normals are within max_angle_deg of it.
+    """
+    grid = tiling.grid
+    faces = list(tiling.faces)
+    by_cells = {}
+    for n, f in enumerate(faces):
+        by_cells.setdefault(frozenset((tuple(f.lower), tuple(f.upper))), []).append(n)
+    cos_max = np.cos(np.radians(max_angle_deg))
+    jointed = []
+    steps = []  # built as assembly (post-order), reversed at the end
+
+    def crossing(moving, fixed):
+        mv = set(moving)
+        return [n for n, f in enumerate(faces)
+                if (tuple(f.lower) in mv) != (tuple(f.upper) in mv)
+                and (tuple(f.lower) in mv or tuple(f.lower) in fixed) and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
+
+    def choose(cands, axis, sign, lo_cells):
+        """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known."""
+        if not cands:
+            return []
+        mids = []
+        for n in cands:
+            f = faces[n]
+            c = np.array(f.lower, float)
+            others = [x for x in range(3) if x != axis]
+            mids.append(sum(abs(c[x] - lo_cells[x]) for x in others))
+        normals, area = _face_normals(tiling, fmap, cands)
+        if normals is None:
+            best = int(np.argmin(mids))
+            return [cands[best]]
+        # the widest face, ties to the middle: a collapsed face (a pole) cannot hold a pin
+        score = area / max(float(area.max()), 1e-300) - 1e-3 * np.array(mids)
+        best = int(np.argmax(score))
+        ok = [n for k, n in enumerate(cands)
+              if area[k] > 0.25 * area[best] and float(normals[k] @ normals[best]) >= cos_max]
+        return sorted(set(ok) | {cands[best]})
+
+    def split(cells, open_axes):
+        """Assembly steps for the block `cells` (a list of indices); open_axes: periodic axes already cut."""
+        if len(cells) == 1:
+            return
+        idx = np.array(cells)
+        ring = [a for a in tiling.periodic if a not in open_axes and grid[a] > 1
+                and len(np.unique(idx[:, a])) == grid[a]]
+        if ring:
+            a = max(ring, key=lambda x: grid[x])
+            p = grid[a] // 2
+            fixed = [c for c in cells if c[a] < p]
+            moving = [c for c in cells if c[a] >= p]
+            cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None and faces[n].axis == a]
+            mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
+            chosen = choose(cand, a, +1, mid_lo)
+            jointed.extend(chosen)
+            split(fixed, open_axes | {a})
+            split(moving, open_axes | {a})
+            steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), True))
+            return
+        spans = [len(np.unique(idx[:, x])) for x in range(3)]
+        if fmap is not None:
+            # physical length of the block along each axis breaks ties between equal counts
+            c = tiling.cells[tuple(cells[0])].box.mean(axis=0)
+            _, jac = fmap.evaluate_with_jacobian(c[None])
+            lo = np.array([tiling.breaks[x][idx[:, x].min()] for x in range(3)])
+            hi = np.array([tiling.breaks[x][idx[:, x].max() + 1] for x in range(3)])
+            size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
+        else:
+            size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
+        a = max(range(3), key=lambda x: (spans[x], size[x]))
+        vals = np.unique(idx[:, a])
+        p = vals[len(vals) // 2]
+        fixed = [c for c in cells if c[a] < p]
+        moving = [c for c in cells if c[a] >= p]
+        cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
+        mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
+        chosen = choose(cand, a, +1, mid_lo)
+        jointed.extend(chosen)
+        split(fixed, open_axes)
+        split(moving, open_axes)
+        steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), False))
+
+    cells = sorted(tiling.cells)
+    split(cells, frozenset())
+    order = []
+    # placement order: the fixed block first, then the moving one, recursively
+    tree = {frozenset(s.moving) | frozenset(s.fixed): s for s in steps}
+
+    def walk(block):
+        s = tree.get(frozenset(block))
+        if s is None:
+            order.extend(sorted(block))
+            return
+        walk(s.fixed)
+        walk(s.moving)
+
+    walk(cells)
+    fwj = tuple((n, "lower") for n in sorted(set(jointed)))
+    return AssemblyPlan(fwj, tuple(reversed(steps)), tuple(order))
+
+
+def joint_faces(tiling, plan):
+    """[(Face, pin_side)] of the plan: what the joint stage should build."""
+    return [(tiling.faces[n], side) for n, side in plan.faces_with_joints]
+
+
+def select_joints(joints, tiling, plan):
+    """The joints of a full volpuzzle.joint.plan_joints run that lie on the plan's faces (pins on the lower cell)."""
+    keys = {_face_key(tiling.faces[n]) for n, _ in plan.faces_with_joints}
+    return [j for j in joints if (int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) in keys]
+
+
+def joint_graph_connected(tiling, plan):
+    """True when the jointed faces join every cell into one."""
+    cells = list(tiling.cells)
+    parent = {c: c for c in cells}
+
+    def root(c):
+        while parent[c] != c:
+            parent[c] = parent[parent[c]]
+            c = parent[c]
+        return c
+
+    for n, _ in plan.faces_with_joints:
+        f = tiling.faces[n]
+        parent[root(tuple(f.lower))] = root(tuple(f.upper))
+    return len({root(c) for c in cells}) <= 1
+
+
+def step_problems(tiling, plan):
+    """Sentences naming every step that breaks the joint rule (empty when the plan is sound): the block must be the
+    union of moving and fixed, every face between them normal to the step's axis with moving on the step's side (or a
+    seam face of a ring cut), at least one joint across, and every jointed face across along the step's axis."""
+    jointed = {n for n, _ in plan.faces_with_joints}
+    out = []
+    for k, s in enumerate(plan.steps):
+        mv, fx = set(s.moving), set(s.fixed)
+        name = f"step {k + 1} ({len(mv)} piece(s) {s.direction})"
+        if mv & fx:
+            out.append(f"{name}: moving and fixed share cells")
+        joints_across = 0
+        for n, f in enumerate(tiling.faces):
+            lo, up = tuple(f.lower), tuple(f.upper)
+            if not ((lo in mv and up in fx) or (lo in fx and up in mv)):
+                continue
+            if f.axis != s.axis:
+                out.append(f"{name}: moving slides along face {piece_id(lo)}|{piece_id(up)} (axis {AXES[f.axis]})")
+                continue
+            moving_upper = up in mv
+            if f.seam is None and moving_upper != (s.sign > 0):
+                out.append(f"{name}: moving would push into {piece_id(lo if moving_upper else up)}")
+            if f.seam is not None and not s.ring_cut:
+                out.append(f"{name}: crosses the seam at {piece_id(lo)}|{piece_id(up)} without a ring cut")
+            if n in jointed:
+                joints_across += 1
+        if joints_across == 0:
+            out.append(f"{name}: no joint holds the two blocks together")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Replaying the plan on the real meshes
+
+
+def _as_manifold(mesh, pid):
+    from .geometry import manifold_from_mesh
+
+    return manifold_from_mesh(mesh.vertices, mesh.faces, f"piece {pid}", keep_faces=False)
+
+
+def _overlap(a, b):
+    import manifold3d
+
+    inter = a ^ b
+    if inter.status() != manifold3d.Error.NoError:
+        raise GeometryError(f"assembly check: intersection failed (status {inter.status().name})")
+    return float(inter.volume())
+
+
+class _Scene:
+    """Pieces as manifolds with their vertices, boxes and volumes; counts the Booleans."""
+
+    def __init__(self, pieces):
+        self.ids = sorted(pieces)
+        self.man, self.verts, self.box, self.vol = {}, {}, {}, {}
+        for pid in self.ids:
+            mesh = pieces[pid]
+            mesh = getattr(mesh, "mesh", mesh)
+            self.man[pid] = _as_manifold(mesh, pid)
+            self.verts[pid] = np.asarray(mesh.vertices, dtype=float)
+            self.box[pid] = np.array([self.verts[pid].min(axis=0), self.verts[pid].max(axis=0)])
+            self.vol[pid] = float(self.man[pid].volume())
+        self.booleans = 0
+
+    def sweep_clear(self, moving, fixed, d, fine, limit_frac):
+        """True when `moving` (ids) can travel along unit d (3,) until it is past every fixed piece, sampled every
+        `fine` mm over the first pin length and coarser beyond; else (False, (moving id, fixed id, mm))."""
+        pm = np.concatenate([self.verts[p] @ d for p in moving])
+        pf = np.concatenate([self.verts[p] @ d for p in fixed])
+        total = float(pf.max() - pm.min()) + 0.1
+        if total <= 0:
+            return True, None
+        near = min(total, 3.0 * fine * 4 + 2.0)
+        ts = list(np.arange(0.05, near, fine)) + list(np.arange(near, total + 2.0, max(2.0, total / 15)))
+        limit = {p: limit_frac * self.vol[p] for p in self.ids}
+        for t in ts:
+            shift = t * d
+            for pm_id in moving:
+                blo, bhi = self.box[pm_id][0] + shift, self.box[pm_id][1] + shift
+                moved = None
+                for pf_id in fixed:
+                    lo = np.maximum(blo, self.box[pf_id][0])
+                    hi = np.minimum(bhi, self.box[pf_id][1])
+                    lim = min(limit[pm_id], limit[pf_id])
+                    if np.any(hi <= lo) or float(np.prod(hi - lo)) <= lim:
+                        continue
+                    if moved is None:
+                        moved = self.man[pm_id].translate(tuple(shift))
+                    self.booleans += 1
+                    if _overlap(moved, self.man[pf_id]) > lim:
+                        return False, (pm_id, pf_id, float(t))
+        return True, None
+
+
+def _direction(joints, moving_cells, fixed_cells):
+    """Unit mm direction in which moving leaves fixed through the joints across (pin out of hole), or None."""
+    mv = set(moving_cells)
+    fx = set(fixed_cells)
+    ds = []
+    for j in joints:
+        pc, hc = tuple(j.pin_cell), tuple(j.hole_cell)
+        if hc in mv and pc in fx:
+            ds.append(np.asarray(j.direction, float))
+        elif pc in mv and hc in fx:
+            ds.append(-np.asarray(j.direction, float))
+    if not ds:
+        return None, []
+    d = np.mean(ds, axis=0)
+    n = float(np.linalg.norm(d))
+    return (d / n if n > 1e-9 else None), ds
+
+
+def _across(joints, moving_cells, fixed_cells):
+    mv, fx = set(moving_cells), set(fixed_cells)
+    return [j for j in joints if (tuple(j.pin_cell) in mv and tuple(j.hole_cell) in fx)
+            or (tuple(j.hole_cell) in mv and tuple(j.pin_cell) in fx)]
+
+
+def _candidates(block, planned, max_tries):
+    """Splits (moving, fixed, axis, sign) of a block to try: the planned one, then every grid-plane split either way,
+    then single pieces."""
+    out = []
+    if planned is not None:
+        out.append((tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign))
+    idx = np.array(block)
+    for a in range(3):
+        vals = np.unique(idx[:, a])
+        for p in vals[1:]:
+            hi = tuple(c for c in block if c[a] >= p)
+            lo = tuple(c for c in block if c[a] < p)
+            out.append((hi, lo, a, +1))
+            out.append((lo, hi, a, -1))
+    for c in block:
+        out.append(((c,), tuple(x for x in block if x != c), -1, 0))
+    seen, uniq = set(), []
+    for m, f, a, s in out:
+        key = frozenset(m)
+        if key not in seen:
+            seen.add(key)
+            uniq.append((m, f, a, s))
+    return uniq[:max_tries]
+
+
+def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=None, max_tries=24):
+    """Replay the plan on the real meshes -> dict.
+
+    pieces: {id: trimesh mesh in mm} (or Piece objects); joints: volpuzzle.joint.Joint list (the ones built);
+    plan: AssemblyPlan. A block leaves along the mean mm direction of its joints to the other block (the centroid
+    difference when none cross) and is swept until it is past the other block; every sample must overlap each other
+    piece by at most limit_frac of the smaller piece volume. Keys: assembly_order (ids, every piece once), steps (in
+    assembly order: kind 'place' | 'join', piece (id or None), pieces (the block moved), into (ids of the other block
+    that it joins through joints), onto (all ids of the other block), direction (3,) of travel when assembling, axis
+    ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans, seconds.
+    """
+    t0 = time.perf_counter()
+    scene = _Scene(pieces)
+    cell_of = {piece_id(c): tuple(c) for c in (tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids)}
+    joints = list(joints or [])
+    if fine is None:
+        lengths = [float(j.length) for j in joints] or [2.0]
+        fine = max(0.25, min(1.0, min(lengths) / 3.0))
+    planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
+    stuck = []
+
+    def centroid(cells):
+        return np.mean([scene.verts[piece_id(c)].mean(axis=0) for c in cells], axis=0)
+
+    def take_apart(block):
+        """Assembly steps for block (list of cells), or the steps of its parts that worked plus stuck pieces."""
+        block = sorted(tuple(c) for c in block)
+        if len(block) == 1:
+            return [{"kind": "place", "piece": piece_id(block[0]), "pieces": [piece_id(block[0])], "into": [],
+                     "onto": [], "direction": None, "axis": None, "joints": []}]
+        for moving, fixed, a, s in _candidates(block, planned.get(frozenset(block)), max_tries):
+            across = _across(joints, moving, fixed)
+            d, _ = _direction(across, moving, fixed)
+            if d is None:
+                if across:
+                    continue  # pins pointing against each other: this split cannot part
+                d = centroid(moving) - centroid(fixed)
+                n = float(np.linalg.norm(d))
+                if n < 1e-9:
+                    continue
+                d = d / n
+            ok, _ = scene.sweep_clear([piece_id(c) for c in moving], [piece_id(c) for c in fixed], d, fine,
+                                      limit_frac)
+            if not ok:
+                continue
+            join = {"kind": "join", "piece": piece_id(moving[0]) if len(moving) == 1 else None,
+                    "pieces": [piece_id(c) for c in moving],
+                    "into": sorted({piece_id(j.pin_cell if tuple(j.pin_cell) in set(fixed) else j.hole_cell)
+                                    for j in across}),
+                    "onto": [piece_id(c) for c in fixed],
+                    "direction": [float(x) for x in -d],
+                    "axis": (("+" if s > 0 else "-") + AXES[a]) if a >= 0 else None,
+                    "joints": [[piece_id(j.pin_cell), piece_id(j.hole_cell)] for j in across]}
+            return take_apart(fixed) + take_apart(moving) + [join]
+        stuck.extend(piece_id(c) for c in block)
+        return [{"kind": "place", "piece": piece_id(c), "pieces": [piece_id(c)], "into": [], "onto": [],
+                 "direction": None, "axis": None, "joints": [], "stuck": True} for c in block]
+
+    steps = take_apart(list(cell_of.values()))
+    order = []
+    for s in steps:
+        for p in s["pieces"]:
+            if p not in order:
+                order.append(p)
+    return {"assembly_order": order, "steps": steps, "welded": bool(stuck), "stuck": sorted(stuck),
+            "booleans": scene.booleans, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Words for report.md
+
+
+def _vec(d):
+    return "(" + ", ".join(f"{x:.2f}" for x in d) + ")"
+
+
+def _names(ids):
+    return ", ".join(ids)
+
+
+def steps_in_words(result):
+    """Numbered sentences for report.md, one per assembly step (list of str)."""
+    lines = []
+    placed_any = False
+    for k, s in enumerate(result["steps"], start=1):
+        if s["kind"] == "place":
+            if s.get("stuck"):
+                lines.append(f"{k}. Place {s['piece']} (stuck: this piece cannot be taken out again).")
+            elif not placed_any:
+                lines.append(f"{k}. Place {s['piece']} on the table.")
+            else:
+                lines.append(f"{k}. Separately, place {s['piece']} on the table to start a new block.")
+            placed_any = True
+            continue
+        what = s["piece"] if s["piece"] else "the block " + _names(s["pieces"])
+        onto = _names(s["onto"]) if len(s["onto"]) <= 4 else f"the block of {len(s['onto'])} pieces with {s['onto'][0]}"
+        axis = ""
+        if s["axis"]:
+            # the removal went along axis; assembling travels the other way
+            axis = f" along {('-' if s['axis'][0] == '+' else '+')}{s['axis'][1]}"
+        line = f"{k}. Slide {what} onto {onto}{axis} (mm direction {_vec(s['direction'])})"
+        pins = []
+        for pin, hole in s["joints"]:
+            pins.append(f"the pin of {pin} enters {hole}")
+        if pins:
+            line += " so that " + "; ".join(pins)
+        lines.append(line + ".")
+    if result.get("welded"):
+        lines.append(f"Warning: the puzzle is welded: {_names(result['stuck'])} cannot be taken apart.")
+    return lines
