@@ -2,8 +2,6 @@
 
 import numpy as np
 
-from .errors import VolpuzzleError
-
 AXES = "uvw"
 
 
@@ -41,55 +39,37 @@ def _sampled_det(vol):
     return uvw, np.linalg.det(vol.derivatives(uvw))
 
 
-def _jacobian_bounds(vol):
-    """(min, max) of the Bezier coefficients of det J (kernel: spline.jacobian.jacobian_bezier)."""
-    from .spline.jacobian import jacobian_bezier
+def _orientation(vol):
+    """The kernel's certified orientation (spline.jacobian.orientation): handedness right / left / folded /
+    unresolved, a place, and lower / upper bounds of det J from its Bezier coefficients."""
+    from .spline.jacobian import orientation
 
-    jb = jacobian_bezier(vol)
-    for name in ("coefficients", "coefs", "coeffs"):
-        if hasattr(jb, name):
-            jb = getattr(jb, name)
-            break
-    if isinstance(jb, (list, tuple)):
-        flat = np.concatenate([np.asarray(x, float).ravel() for x in jb]) if len(jb) else np.zeros(1)
-    else:
-        flat = np.asarray(jb, float).ravel()
-    return float(flat.min()), float(flat.max())
+    return orientation(vol)
 
 
-def _handedness(vol, det):
-    """'right' or 'left' from the kernel's orientation(vol); the sampled det J decides if that is unavailable."""
-    try:
-        from .spline.jacobian import orientation
-
-        o = orientation(vol)
-        if isinstance(o, str):
-            if o in ("right", "left"):
-                return o
-        elif o is not None and float(o) != 0:
-            return "right" if float(o) > 0 else "left"
-    except (ImportError, VolpuzzleError):
-        pass
-    return "right" if float(np.sum(det)) >= 0 else "left"
+def _fold_at(vol, uvw, value, frac=None):
+    uvw = np.asarray(uvw, float).reshape(3)
+    xyz = vol.evaluate(uvw[None])[0]
+    share = f" ({frac:.1%} of the samples)" if frac is not None else ""
+    out = {"uvw": [float(x) for x in uvw], "xyz": [float(x) for x in xyz], "det_j": float(value),
+           "message": (f"the Jacobian changes sign: det J = {value:.4g} at uvw = "
+                       f"({', '.join(f'{x:.4g}' for x in uvw)}), xyz = ({', '.join(f'{x:.4g}' for x in xyz)}), "
+                       f"against the opposite sign elsewhere{share}")}
+    if frac is not None:
+        out["fraction_of_samples"] = frac
+    return out
 
 
-def _fold(vol, uvw, det):
-    """Where det J changes sign on the sample grid, or None: the worst point of the minority sign."""
-    scale = float(np.max(np.abs(det))) if det.size else 0.0
-    eps = 1e-9 * scale
+def _sampled_fold(vol, uvw, det):
+    """Where the sampled det J takes the minority sign (its largest value), or None when it keeps one sign."""
+    eps = 1e-9 * (float(np.max(np.abs(det))) if det.size else 0.0)
     pos, neg = det > eps, det < -eps
     if not (pos.any() and neg.any()):
         return None
     minority = neg if pos.sum() >= neg.sum() else pos
     idx = np.flatnonzero(minority)
     i = int(idx[np.argmax(np.abs(det[idx]))])
-    xyz = vol.evaluate(uvw[i:i + 1])[0]
-    frac = float(minority.mean())
-    return {"uvw": [float(x) for x in uvw[i]], "xyz": [float(x) for x in xyz], "det_j": float(det[i]),
-            "fraction_of_samples": frac,
-            "message": (f"the Jacobian changes sign: det J = {det[i]:.4g} at uvw = "
-                        f"({', '.join(f'{x:.4g}' for x in uvw[i])}), xyz = ({', '.join(f'{x:.4g}' for x in xyz)}) "
-                        f"against the opposite sign elsewhere ({frac:.1%} of the samples)")}
+    return _fold_at(vol, uvw[i], det[i], float(minority.mean()))
 
 
 def model_info(vol, path=None, patch=0, meta=None):
@@ -119,10 +99,17 @@ def model_info(vol, path=None, patch=0, meta=None):
     d["bbox"] = [[float(x) for x in lo], [float(x) for x in hi]]
     d["volume"] = abs(float(volume(vol)))
     uvw, det = _sampled_det(vol)
-    d["handedness"] = _handedness(vol, det)
-    d["jacobian_min"], d["jacobian_max"] = _jacobian_bounds(vol)
+    ori = _orientation(vol)
+    d["jacobian_min"], d["jacobian_max"] = float(ori.lower), float(ori.upper)
     d["jacobian_sampled"] = [float(det.min()), float(det.max())]
-    fold = _fold(vol, uvw, det)
+    d["jacobian_certificate"] = ori.handedness if ori.handedness in ("folded", "unresolved") else (
+        ori.certificate.status if ori.certificate is not None else "coefficients")
+    fold = _fold_at(vol, ori.where_uvw, ori.value) if ori.handedness == "folded" else _sampled_fold(vol, uvw, det)
+    if ori.handedness in ("right", "left") and fold is None:
+        d["handedness"] = ori.handedness
+    else:
+        # SPEC: right | left. A folded model gets the sign of most of its volume, and the fold entry says where.
+        d["handedness"] = "right" if float(np.sum(det)) >= 0 else "left"
     if fold is not None:
         d["fold"] = fold
     return d
