@@ -55,18 +55,26 @@ def _certifies(family, amplitude, max_depth):
 def safe_amplitude(family, hi, max_depth=_DEFAULT_DEPTH, rel_tol=0.01, max_iter=16):
     """Largest amplitude in [0, hi] (to about rel_tol relative) whose R = family(amplitude) certifies det J > 0.
 
-    Bisection on the one drawn direction field: amplitude 0 is the identity, which always certifies. Returns hi when
-    hi itself certifies. At most max_iter certifications after the first.
+    Amplitude 0 is the identity, which always certifies. Returns hi when hi itself certifies. Otherwise it climbs
+    from hi/64 in doublings to the first amplitude that fails, then bisects between the last success and that
+    failure: climbing from below finds the first threshold even where certification is not monotone in the
+    amplitude (a fold can open and close again as the one drawn direction field grows). At most 6 + max_iter
+    certifications after the first.
     """
     hi = float(hi)
     if hi <= 0 or _certifies(family, hi, max_depth):
         return max(hi, 0.0)
     lo = 0.0
+    for k in range(6, 0, -1):
+        a = hi / 2.0 ** k
+        if not _certifies(family, a, max_depth):
+            hi = a
+            break
+        lo = a
     for _ in range(max_iter):
         if lo > 0 and hi - lo <= rel_tol * lo:
             break
-        # Geometric steps while nothing certifies yet (the safe value may be far below hi), then halving.
-        mid = hi / 4.0 if lo == 0.0 and hi > 0.05 else 0.5 * (lo + hi)
+        mid = 0.5 * (lo + hi)
         if _certifies(family, mid, max_depth):
             lo = mid
         else:
@@ -111,7 +119,9 @@ def verify_warp(family, amplitude, max_depth=_DEFAULT_DEPTH):
         return {"amplitude": amplitude, "jacobian_min_coefficient": _absolute(cert),
                 "bijective": True, "status": cert.status}
     safe = _quotable(family, safe_amplitude(family, amplitude, max_depth), max_depth)
-    what = "folds the map R" if cert.status == "disproved" else "cannot be certified one-to-one"
+    what = {"disproved": "folds the map R",
+            "degenerate": "flattens the map R against D's boundary (det J reaches 0 there)"}.get(
+        cert.status, "cannot be certified one-to-one")
     where = _fmt_uvw(cert.where_uvw) if cert.where_uvw is not None else "(unknown)"
     detail = f"smallest Jacobian coefficient {_fmt_num(_absolute(cert))} at uvw {where}"
     if cert.status == "disproved" and cert.value is not None:
