@@ -158,6 +158,13 @@ class _Grid:
                 return idx
         raise GeometryError("compose: grid indices did not settle under the periodic seams")
 
+    def fill(self):
+        """Evaluate every break plane now (before the grid is sent to worker processes)."""
+        for a in range(3):
+            for i in np.flatnonzero(self.is_break[a]):
+                self.plane(a, int(i))
+        return self
+
     def keys(self, idx):
         return np.ravel_multi_index(tuple(np.asarray(idx).T), self.n)
 
@@ -616,8 +623,9 @@ def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None):
 _WORKER = {}
 
 
-def _init_worker(tiling, sampling, fmap, joints):
-    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints, grid=_grid_for(sampling, fmap))
+def _init_worker(tiling, sampling, fmap, joints, grid=None):
+    grid = grid if grid is not None else _grid_for(sampling, fmap)
+    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints, grid=grid)
 
 
 def _build_in_worker(index):
@@ -635,9 +643,18 @@ def _piece_from(rec):
     return Piece(pid, tuple(cell), mesh, vol, bvol, int(len(f)))
 
 
+class Pieces(list):
+    """The pieces in cell-index order, with the Sampling they were built on (.sampling.max_error_mm for the report)
+    and the build time of each piece in seconds (.seconds, by piece id)."""
+
+    sampling = None
+    seconds = None
+
+
 def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None):
-    """Every cell -> Piece, in cell-index order. jobs > 1 builds in a process pool (same results as jobs=1);
-    progress(i, n, piece_id) is called as pieces finish. Pass `sampling` to reuse one from sample_parameters."""
+    """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
+    pool (same results as jobs=1); progress(i, n, piece_id) is called as pieces finish. Pass `sampling` to reuse one
+    from sample_parameters."""
     sampling = sampling if sampling is not None else sample_parameters(tiling, fmap, tolerance)
     order = sorted(tiling.cells)
     n = len(order)
@@ -655,11 +672,19 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
     else:
         ctx = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(max_workers=int(jobs), mp_context=ctx, initializer=_init_worker,
-                                                    initargs=(tiling, sampling, fmap, joints)) as pool:
+                                                    initargs=(tiling, sampling, fmap, joints,
+                                                              _grid_for(sampling, fmap).fill())) as pool:
             futures = {pool.submit(_build_in_worker, index): index for index in order}
             for k, fut in enumerate(concurrent.futures.as_completed(futures)):
-                rec = fut.result()
+                try:
+                    rec = fut.result()
+                except concurrent.futures.process.BrokenProcessPool as e:
+                    raise GeometryError(f"compose: a worker process died while building "
+                                        f"{tiling.cell(futures[fut]).id} ({e}); try --jobs 1") from e
                 recs[futures[fut]] = rec
                 if progress:
                     progress(k + 1, n, rec[0])
-    return [_piece_from(recs[index]) for index in order]
+    out = Pieces(_piece_from(recs[index]) for index in order)
+    out.sampling = sampling
+    out.seconds = {recs[index][0]: recs[index][6] for index in order}
+    return out
