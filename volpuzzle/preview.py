@@ -55,11 +55,12 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.35, title=N
         coll = Poly3DCollection(tris, facecolors=cols, edgecolors="none", linewidths=0, antialiased=False)
         ax.add_collection3d(coll)
         lo, hi = tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0)
-        mid, half = (lo + hi) / 2, (hi - lo).max() * 0.5
-        ax.set_xlim(mid[0] - half, mid[0] + half)
-        ax.set_ylim(mid[1] - half, mid[1] + half)
-        ax.set_zlim(mid[2] - half, mid[2] + half)
-        ax.set_box_aspect((1, 1, 1))
+        span = np.maximum(hi - lo, 1e-3 * (hi - lo).max())
+        ax.set_xlim(lo[0], lo[0] + span[0])
+        ax.set_ylim(lo[1], lo[1] + span[1])
+        ax.set_zlim(lo[2], lo[2] + span[2])
+        # Equal scale on every axis, framed on the model rather than on a cube around it.
+        ax.set_box_aspect(tuple(span), zoom=1.25)
         ax.view_init(elev=28, azim=-60)
         ax.set_axis_off()
         ax.set_title(label, fontsize=14)
