@@ -1,0 +1,275 @@
+"""Trivariate cages around a closed mesh (paper section 5): the cage Mc is the model the puzzle is cut from, and each
+piece is then intersected with the mesh. Curved cages make the cuts follow the shape (the paper's Fig. 14).
+
+Every cage has the domain [0, 1]^3, is in mm and right-handed (det J > 0 inside; it may vanish on a collapsed face):
+  box       (u, v, w) = the three box axes; no periodic axis.
+  cylinder  (u, v, w) = (radius, angle, height); v is periodic (the seam v=0 ~ v=1); u=0 collapses to the axis.
+  sphere    (u, v, w) = (radius, polar angle, azimuth); w is periodic; u=0 collapses to the centre, v=0 and v=1 to
+            the poles' half-axes.
+  nurbs     any model file; periodic axes are whatever the file has (find them with spline.seams.find_seams).
+The circles are exact rational quadratics (The NURBS Book, section 7.5, nine-point circle; section 8.5 for the
+sphere as a surface of revolution).
+"""
+
+import numpy as np
+import trimesh
+
+from .errors import ModelError
+from .spline.volume import Volume
+
+__all__ = ["make_cage", "check_inside", "cage_boundary", "PERIODIC_AXES"]
+
+PERIODIC_AXES = {"box": [], "cylinder": [1], "sphere": [2]}
+_S = np.sqrt(0.5)
+# nine-point rational circle of radius 1 (square control polygon), four quarter arcs
+_CIRCLE_XY = np.array([[1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0], [-1, -1], [0, -1], [1, -1], [1, 0]], float)
+_CIRCLE_W = np.array([1, _S, 1, _S, 1, _S, 1, _S, 1])
+_CIRCLE_KNOTS = np.array([0, 0, 0, .25, .25, .5, .5, .75, .75, 1, 1, 1])
+# half circle from the north pole to the south pole in the (rho, z) half-plane, two quarter arcs
+_HALF_RZ = np.array([[0, 1], [1, 1], [1, 0], [1, -1], [0, -1]], float)
+_HALF_W = np.array([1, _S, 1, _S, 1])
+_HALF_KNOTS = np.array([0, 0, 0, .5, .5, 1, 1, 1])
+
+
+def _uniform_knots(n, p):
+    inner = np.linspace(0.0, 1.0, n - p + 1)[1:-1]
+    return np.concatenate([np.zeros(p + 1), inner, np.ones(p + 1)])
+
+
+def _greville(knots, p):
+    n = len(knots) - p - 1
+    return np.array([knots[i + 1:i + p + 1].mean() for i in range(n)])
+
+
+def _hull_points(mesh):
+    try:
+        return np.asarray(mesh.convex_hull.vertices, float)
+    except Exception:  # a flat or tiny mesh: all its vertices will do
+        return np.asarray(mesh.vertices, float)
+
+
+def _right_handed(axes):
+    """axes (3, 3) rows -> rows reordered to be nearest x, y, z, pointing along them, with det > 0."""
+    axes = np.asarray(axes, float)
+    order, used = [], set()
+    for k in range(3):
+        cand = [i for i in range(3) if i not in used]
+        i = max(cand, key=lambda i: abs(axes[i, k]))
+        used.add(i)
+        order.append(i)
+    r = axes[order].copy()
+    for k in range(3):
+        if r[k, k] < 0:
+            r[k] = -r[k]
+    if np.linalg.det(r) < 0:
+        r[2] = -r[2]
+    return r
+
+
+def _box(mesh, pad, cps):
+    pts = _hull_points(mesh)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    aabb = (np.eye(3), (lo + hi) / 2, (hi - lo) / 2 + pad)
+    best, kind = aabb, "axis-aligned"
+    try:
+        obb = mesh.bounding_box_oriented.primitive
+        axes = _right_handed(np.asarray(obb.transform)[:3, :3].T)
+        local = pts @ axes.T
+        llo, lhi = local.min(axis=0), local.max(axis=0)
+        cand = (axes, axes.T @ ((llo + lhi) / 2), (lhi - llo) / 2 + pad)
+        if np.prod(cand[2]) < np.prod(aabb[2]) * (1 - 1e-6):
+            best, kind = cand, "principal axes"
+    except Exception:  # trimesh's oriented bounds can fail on degenerate hulls; the axis-aligned box stands
+        pass
+    axes, center, half = best
+    n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
+    degrees = tuple(1 if cps is None else min(3, k - 1) for k in n)
+    knots = tuple(_uniform_knots(k, p) for k, p in zip(n, degrees))
+    # control points at the Greville abscissae: the spline reproduces the linear map exactly (linear precision)
+    g = [(_greville(kn, p) * 2 - 1) * h for kn, p, h in zip(knots, degrees, half)]
+    local = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1)
+    cp = center + local @ axes
+    vol = Volume(degrees, knots, cp)
+    info = {"type": "box", "frame": kind, "center_mm": center.tolist(), "axes": axes.tolist(),
+            "size_mm": (2 * half).tolist()}
+    return vol, info
+
+
+def _min_circle(points2d):
+    c, r = trimesh.nsphere.minimum_nsphere(points2d)
+    return np.asarray(c, float), float(r)
+
+
+def _frame_from_axis(a):
+    a = a / np.linalg.norm(a)
+    helper = np.eye(3)[int(np.argmin(np.abs(a)))]
+    e1 = np.cross(helper, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    return e1, e2, a  # right-handed: e1 x e2 = a
+
+
+def _cylinder(mesh, pad):
+    pts = _hull_points(mesh)
+    cands = [np.eye(3)[k] for k in range(3)]
+    try:
+        cands += list(np.asarray(mesh.principal_inertia_vectors, float))
+        cands += list(np.asarray(mesh.bounding_box_oriented.primitive.transform)[:3, :3].T)
+    except Exception:
+        pass
+    best = None
+    for a in cands:
+        e1, e2, a = _frame_from_axis(np.asarray(a, float))
+        p2 = np.stack([pts @ e1, pts @ e2], axis=1)
+        c2, r = _min_circle(p2)
+        h = pts @ a
+        size = np.pi * (r + pad) ** 2 * (h.max() - h.min() + 2 * pad)
+        if best is None or size < best[0] * (1 - 1e-9):
+            best = (size, e1, e2, a, c2, r, h.min(), h.max())
+    _, e1, e2, a, c2, r, h0, h1 = best
+    R = r + pad
+    radii = np.array([0.0, R])
+    heights = np.array([h0 - pad, h1 + pad])
+    ring = _CIRCLE_XY[:, 0:1] * e1 + _CIRCLE_XY[:, 1:2] * e2  # (9, 3)
+    base = c2[0] * e1 + c2[1] * e2
+    cp = (base + radii[:, None, None, None] * ring[None, :, None, :]
+          + heights[None, None, :, None] * a[None, None, None, :])
+    w = np.broadcast_to(_CIRCLE_W[None, :, None], (2, 9, 2)).copy()
+    vol = Volume((1, 2, 1), (np.array([0, 0, 1, 1.0]), _CIRCLE_KNOTS, np.array([0, 0, 1, 1.0])), cp, w)
+    info = {"type": "cylinder", "axis": a.tolist(), "center_mm": (base + heights[0] * a).tolist(), "radius_mm": R,
+            "height_mm": float(heights[1] - heights[0])}
+    return vol, info
+
+
+def _sphere(mesh, pad):
+    pts = _hull_points(mesh)
+    c, r = trimesh.nsphere.minimum_nsphere(pts)
+    c, R = np.asarray(c, float), float(r) + pad
+    radii = np.array([0.0, R])
+    # surface of revolution (The NURBS Book, A8.1): the polar half circle's rho scales the azimuth circle
+    xy = _CIRCLE_XY  # (9, 2)
+    pol = _HALF_RZ  # (5, 2): rho, z
+    unit = np.zeros((5, 9, 3))
+    unit[..., 0] = pol[:, None, 0] * xy[None, :, 0]
+    unit[..., 1] = pol[:, None, 0] * xy[None, :, 1]
+    unit[..., 2] = pol[:, None, 1]
+    cp = c + radii[:, None, None, None] * unit[None]
+    w = np.broadcast_to((_HALF_W[:, None] * _CIRCLE_W[None, :])[None], (2, 5, 9)).copy()
+    vol = Volume((1, 2, 2), (np.array([0, 0, 1, 1.0]), _HALF_KNOTS, _CIRCLE_KNOTS), cp, w)
+    info = {"type": "sphere", "center_mm": c.tolist(), "radius_mm": R}
+    return vol, info
+
+
+def make_cage(mesh, cage_spec, scale=1.0):
+    """A cage Volume (mm, domain [0, 1]^3 for the built-in types) around `mesh` (mm) -> (Volume, info dict).
+
+    cage_spec: spec.CageSpec. scale: mm per unit of a NURBS cage file -- the mesh's whole scale (units and size),
+    so that a cage drawn around the unscaled mesh still fits it. info holds 'type', 'periodic' (axis indices of the
+    closed seams, for the spec's `periodic`) and the cage's measures.
+    """
+    kind = cage_spec.type
+    pad = float(cage_spec.padding or 0.0)
+    if kind == "box":
+        vol, info = _box(mesh, pad, cage_spec.control_points)
+    elif kind == "cylinder":
+        vol, info = _cylinder(mesh, pad)
+    elif kind == "sphere":
+        vol, info = _sphere(mesh, pad)
+    elif kind == "nurbs":
+        from .io import load_model
+        from .spline.seams import find_seams
+
+        vol = load_model(cage_spec.nurbs, patch=cage_spec.patch)
+        if scale != 1.0:
+            vol = vol.scaled(scale)
+        info = {"type": "nurbs", "file": str(cage_spec.nurbs), "patch": cage_spec.patch,
+                "periodic": sorted(int(a) for a in find_seams(vol))}
+        return vol, info
+    else:
+        raise ModelError(f"model.cage.type: unknown cage {kind!r} (expected box, cylinder, sphere or nurbs)")
+    info["padding_mm"] = pad
+    info["periodic"] = list(PERIODIC_AXES[kind])
+    return vol, info
+
+
+def _samples(vol, a, n_min=8, per_span=6, n_max=64):
+    lo, hi = vol.domain[a]
+    kn = np.unique(vol.knots[a])
+    spans = max(1, len(kn) - 1)
+    n = int(np.clip(per_span * spans * max(1, vol.degrees[a]), n_min, n_max))
+    t = np.linspace(lo, hi, n + 1)
+    return np.unique(np.concatenate([t, kn[(kn >= lo) & (kn <= hi)]]))
+
+
+def _weld(v, f, tol):
+    """Merge vertices equal up to tol (a collapsed face puts thousands on one point, where a pairwise search would
+    crawl), drop triangles that lose an edge, and cancel pairs of opposite triangles (the two faces of a seam)."""
+    key = np.round(v / tol).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    f = inv.ravel()[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    srt = np.sort(f, axis=1)
+    _, tinv, tcount = np.unique(srt, axis=0, return_inverse=True, return_counts=True)
+    f = f[tcount[tinv.ravel()] == 1]  # a triangle met twice is a seam's pair (or a fold, which the check catches)
+    used, f = np.unique(f, return_inverse=True)
+    return v[first][used], f.reshape(-1, 3)
+
+
+def cage_boundary(vol):
+    """The cage's boundary as a closed trimesh (mm), outward-facing: its six faces sampled on a grid, welded so that
+    collapsed faces (an axis, a pole) vanish and the two faces of a periodic seam cancel."""
+    ts = [_samples(vol, a) for a in range(3)]
+    verts, faces, n = [], [], 0
+    for a in range(3):
+        b, c = (a + 1) % 3, (a + 2) % 3
+        for side in (0, 1):
+            grids = [None, None, None]
+            grids[a] = np.array([ts[a][0] if side == 0 else ts[a][-1]])
+            grids[b], grids[c] = ts[b], ts[c]
+            xyz = vol.evaluate_grid(*grids)  # (.., .., .., 3) in axis order u, v, w
+            # index as (b, c)
+            xyz = np.moveaxis(xyz, (b, c), (0, 1)).reshape(len(ts[b]), len(ts[c]), 3)
+            nb, nc = xyz.shape[:2]
+            idx = np.arange(nb * nc).reshape(nb, nc) + n
+            q0, q1, q2, q3 = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+            # d/db x d/dc points along +a on a right-handed map: outward on the max face
+            t = np.concatenate([np.stack([q0, q1, q2], -1).reshape(-1, 3), np.stack([q0, q2, q3], -1).reshape(-1, 3)])
+            if side == 0:
+                t = t[:, ::-1]
+            verts.append(xyz.reshape(-1, 3))
+            faces.append(t)
+            n += nb * nc
+    v = np.concatenate(verts)
+    span = float(np.ptp(v, axis=0).max()) or 1.0
+    v, f = _weld(v, np.concatenate(faces), 1e-9 * span)
+    mesh = trimesh.Trimesh(v, f, process=False)
+    if mesh.volume < 0:  # a left-handed cage file
+        mesh.invert()
+    return mesh
+
+
+def check_inside(mesh, cage, tol=1e-6):
+    """Raise ModelError unless every point of `mesh` (mm) lies inside the cage Volume, saying how far (mm) the mesh
+    reaches outside. The cage's boundary is sampled (chords cut curved faces by a little: keep some padding).
+    -> the boundary mesh used, for reuse."""
+    from .geometry import boolean, from_trimesh
+
+    bnd = cage_boundary(cage)
+    try:
+        cm = from_trimesh(bnd, "cage boundary")
+    except Exception as e:
+        raise ModelError(f"model.cage: its boundary is not a closed surface ({e}); is the cage folded?") from None
+    mm = from_trimesh(mesh, "mesh model")
+    out = boolean(mm, cm, "difference", "mesh outside the cage")
+    scale = max(float(np.max(mesh.extents)), 1.0)
+    if out.is_empty() or out.volume() <= tol * scale ** 3:
+        return bnd
+    from .geometry import to_trimesh
+
+    pts = np.asarray(to_trimesh(out).vertices)
+    _, dist, _ = trimesh.proximity.closest_point(bnd, pts)
+    worst = int(np.argmax(dist))
+    raise ModelError(
+        f"model.cage: the mesh is not inside the cage: it reaches {float(dist[worst]):.3g} mm outside, at "
+        f"({', '.join(f'{x:.4g}' for x in pts[worst])}) mm ({out.volume():.4g} mm^3 of it outside); "
+        "enlarge the cage or its padding, or shrink the mesh (model.size)")
