@@ -371,14 +371,14 @@ def _across(joints, moving_cells, fixed_cells):
             or (tuple(j.hole_cell) in mv and tuple(j.pin_cell) in fx)]
 
 
-def _candidates(block, planned, max_tries):
+def _candidates(block, planned, max_tries, groups=True):
     """Splits (moving, fixed, axis, sign) of a block to try: the planned one, then every grid-plane split either way,
-    then single pieces."""
+    then single pieces (only single pieces when groups is False)."""
     out = []
-    if planned is not None:
+    if planned is not None and (groups or len(planned.moving) == 1):
         out.append((tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign))
     idx = np.array(block)
-    for a in range(3):
+    for a in range(3 if groups else 0):
         vals = np.unique(idx[:, a])
         for p in vals[1:]:
             hi = tuple(c for c in block if c[a] >= p)
@@ -396,7 +396,7 @@ def _candidates(block, planned, max_tries):
     return uniq[:max_tries]
 
 
-def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=None, max_tries=24):
+def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=None, max_tries=24, groups=True):
     """Replay the plan on the real meshes -> dict.
 
     pieces: {id: trimesh mesh in mm} (or Piece objects); joints: volpuzzle.joint.Joint list (the ones built);
@@ -406,6 +406,8 @@ def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=No
     assembly order: kind 'place' | 'join', piece (id or None), pieces (the block moved), into (ids of the other block
     that it joins through joints), onto (all ids of the other block), direction (3,) of travel when assembling, axis
     ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans, seconds.
+    fmap is accepted for the pipeline's convenience and not needed: directions come from the joints and the meshes.
+    groups=False allows only one piece at a time (then any grid with a cycle of jointed faces is welded).
     """
     t0 = time.perf_counter()
     scene = _Scene(pieces)
@@ -426,7 +428,7 @@ def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=No
         if len(block) == 1:
             return [{"kind": "place", "piece": piece_id(block[0]), "pieces": [piece_id(block[0])], "into": [],
                      "onto": [], "direction": None, "axis": None, "joints": []}]
-        for moving, fixed, a, s in _candidates(block, planned.get(frozenset(block)), max_tries):
+        for moving, fixed, a, s in _candidates(block, planned.get(frozenset(block)), max_tries, groups):
             across = _across(joints, moving, fixed)
             d, _ = _direction(across, moving, fixed)
             if d is None:
@@ -449,7 +451,8 @@ def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=No
                     "direction": [float(x) for x in -d],
                     "axis": (("+" if s > 0 else "-") + AXES[a]) if a >= 0 else None,
                     "joints": [[piece_id(j.pin_cell), piece_id(j.hole_cell)] for j in across]}
-            return take_apart(fixed) + take_apart(moving) + [join]
+            # a single piece is slid on directly; a block of several is built apart first
+            return take_apart(fixed) + (take_apart(moving) if len(moving) > 1 else []) + [join]
         stuck.extend(piece_id(c) for c in block)
         return [{"kind": "place", "piece": piece_id(c), "pieces": [piece_id(c)], "into": [], "onto": [],
                  "direction": None, "axis": None, "joints": [], "stuck": True} for c in block]

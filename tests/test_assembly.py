@@ -1,0 +1,257 @@
+"""assembly: the plan lists every piece once, its joints connect all pieces with at most three pins and three holes per
+piece, every step obeys the joint rule (also round a periodic ring), and the real meshes come apart along it; a puzzle
+that cannot be taken apart is reported welded with its stuck pieces named."""
+
+import dataclasses
+import itertools
+from collections import Counter
+from functools import lru_cache
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from volpuzzle import assembly as A
+from volpuzzle import compose as C
+from volpuzzle import joint as J
+from volpuzzle.mapping import Map
+from volpuzzle.spline import Volume
+from volpuzzle.spline.seams import find_seams
+from volpuzzle.tile import tile
+
+# ---------------------------------------------------------------------------------------------------------------------
+# small models
+
+
+def _clamped(n, p):
+    inner = np.linspace(0, 1, n - p + 1)[1:-1]
+    return np.concatenate([np.zeros(p + 1), inner, np.ones(p + 1)])
+
+
+def _box(sx=40.0, sy=30.0, sz=20.0):
+    cp = np.zeros((2, 2, 2, 3))
+    for i, j, k in np.ndindex(2, 2, 2):
+        cp[i, j, k] = [i * sx, j * sy, k * sz]
+    return Volume((1, 1, 1), ([0, 0, 1, 1],) * 3, cp)
+
+
+def _bent():
+    """A thick quarter ring (left-handed): u along a 90-degree arc, v radial 20..50 mm, w height 30 mm."""
+    k = 0.5523
+    arc = np.array([[1, 0], [1, k], [k, 1], [0, 1]], float)
+    cp = np.zeros((4, 2, 2, 3))
+    for i, j, l in np.ndindex(4, 2, 2):
+        cp[i, j, l] = [(20.0, 50.0)[j] * arc[i, 0], (20.0, 50.0)[j] * arc[i, 1], 30.0 * l]
+    return Volume((3, 1, 1), (_clamped(4, 3), [0, 0, 1, 1], [0, 0, 1, 1]), cp)
+
+
+def _warp(seed=3, amplitude=0.06):
+    """R: the identity (cubic, 5 control points per axis) with its interior control points moved: bumpy cut faces."""
+    n = 5
+    kn = _clamped(n, 3)
+    grev = np.array([kn[i + 1:i + 4].mean() for i in range(n)])
+    g = np.stack(np.meshgrid(grev, grev, grev, indexing="ij"), axis=-1)
+    d = np.random.default_rng(seed).uniform(-amplitude, amplitude, g.shape)
+    d[[0, -1], :, :, 0] = 0
+    d[:, [0, -1], :, 1] = 0
+    d[:, :, [0, -1], 2] = 0
+    return Volume((3, 3, 3), (kn, kn, kn), g + d)
+
+
+def _ring(twist=0.0, major=40.0, side=16.0, n=17):
+    """A square-section ring round z, periodic in w; the section turns by `twist` radians once round (pi/2: the seam
+    swaps u and v)."""
+    knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, n - 2), [1, 1, 1]])
+    grev = np.array([knots[i + 1:i + 4].mean() for i in range(n)])
+    cp = np.zeros((2, 2, n, 3))
+    for i, j, l in np.ndindex(2, 2, n):
+        s, t = (i - 0.5) * side, (j - 0.5) * side
+        phi, th = 2 * np.pi * grev[l], twist * grev[l]
+        if l == n - 1:
+            phi = 0.0
+        er = np.array([np.cos(phi), np.sin(phi), 0.0])
+        ez = np.array([0.0, 0.0, 1.0])
+        cp[i, j, l] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
+    return Volume((1, 1, 3), ([0, 0, 1, 1], [0, 0, 1, 1], knots), cp)
+
+
+def _map(vol, warp=None):
+    _, jac = vol.evaluate_with_derivatives(np.array([[0.5, 0.5, 0.5]]))
+    return Map(vol, warp, int(np.sign(np.linalg.det(jac[0]))))
+
+
+SPEC = SimpleNamespace(style="pin", shape="cylinder", radius=None, length=None, clearance=0.15, axial_clearance=0.3,
+                       space="physical")
+
+
+def _ring_tiling(twist, grid=(2, 2, 8)):
+    vol = _ring(twist)
+    return tile(vol, grid, periodic=(2,), seams=find_seams(vol)), _map(vol)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# the plan in parameter space
+
+
+def _assert_sound(tiling, plan):
+    assert sorted(plan.assembly_order) == sorted(tiling.cells)
+    assert len(plan.assembly_order) == len(set(plan.assembly_order))
+    assert A.step_problems(tiling, plan) == []
+    if len(tiling.cells) > 1:
+        assert A.joint_graph_connected(tiling, plan)
+        assert len(plan.steps) == len(tiling.cells) - 1
+    pins, holes = Counter(), Counter()
+    for n, side in plan.faces_with_joints:
+        f = tiling.faces[n]
+        pin, hole = (f.lower, f.upper) if side == "lower" else (f.upper, f.lower)
+        pins[tuple(pin)] += 1
+        holes[tuple(hole)] += 1
+    assert max(pins.values(), default=0) <= 3 and max(holes.values(), default=0) <= 3
+    # every piece is pinned to the rest
+    jointed = {c for n, _ in plan.faces_with_joints for c in (tiling.faces[n].lower, tiling.faces[n].upper)}
+    if len(tiling.cells) > 1:
+        assert jointed == set(tiling.cells)
+
+
+@pytest.mark.parametrize("grid", list(itertools.product((1, 2, 3), repeat=3)))
+def test_plan_is_sound_on_every_small_grid(grid):
+    _assert_sound(tile(_box(), grid), A.plan_assembly(tile(_box(), grid)))
+
+
+def test_plan_with_the_map_pins_every_face_of_a_flat_split():
+    t = tile(_box(), (2, 2, 2))
+    plan = A.plan_assembly(t, _map(_box()))
+    _assert_sound(t, plan)
+    # a box's splits are flat, so every face crossing a split carries a pin: 4 + 2 + 2 + 1 * 4
+    assert len(plan.faces_with_joints) == 4 + 2 * 2 + 4 * 1
+    assert len(A.plan_assembly(t).faces_with_joints) == len(t.cells) - 1  # without F: one joint per split
+
+
+@pytest.mark.parametrize("twist", [0.0, np.pi / 2], ids=["identity-seam", "swap-seam"])
+def test_periodic_ring_is_cut_in_halves_first(twist):
+    t, fmap = _ring_tiling(twist)
+    if twist:
+        assert t.seams[2].swap
+    for plan in (A.plan_assembly(t), A.plan_assembly(t, fmap)):
+        _assert_sound(t, plan)
+        first = plan.steps[0]
+        assert first.ring_cut and first.axis == 2 and len(first.moving) == len(first.fixed) == 16
+        seam_faces = {n for n, f in enumerate(t.faces) if f.seam is not None}
+        assert not seam_faces & {n for n, _ in plan.faces_with_joints}
+
+
+def test_odd_periodic_ring_still_plans():
+    t, _ = _ring_tiling(0.0, grid=(1, 2, 5))
+    _assert_sound(t, A.plan_assembly(t))
+
+
+def test_step_problems_name_a_sliding_step_and_a_loose_one():
+    t = tile(_box(), (2, 1, 1))
+    sliding = A.AssemblyPlan(((0, "lower"),), (A.Step(((1, 0, 0),), ((0, 0, 0),), 2, +1, (0,)),), ((0, 0, 0), (1, 0, 0)))
+    assert any("slides along face p0-0-0|p1-0-0" in p for p in A.step_problems(t, sliding))
+    loose = A.AssemblyPlan((), (A.Step(((1, 0, 0),), ((0, 0, 0),), 0, +1, ()),), ((0, 0, 0), (1, 0, 0)))
+    assert any("no joint holds" in p for p in A.step_problems(t, loose))
+    pushing = A.AssemblyPlan(((0, "lower"),), (A.Step(((0, 0, 0),), ((1, 0, 0),), 0, +1, (0,)),), ((1, 0, 0), (0, 0, 0)))
+    assert any("push into p1-0-0" in p for p in A.step_problems(t, pushing))
+
+
+def test_select_joints_keeps_the_plans_faces():
+    t = tile(_box(), (2, 2, 2))
+    fmap = _map(_box())
+    plan = A.plan_assembly(t)
+    js = A.select_joints(J.plan_joints(t, fmap, SPEC), t, plan)
+    assert len(js) == len(plan.faces_with_joints)
+    faces = A.joint_faces(t, plan)
+    assert {(f.axis, f.lower, f.upper) for f, _ in faces} == {(j.axis, j.pin_cell, j.hole_cell) for j in js}
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# real meshes
+
+
+@lru_cache(maxsize=None)
+def _built(name, all_faces=False, tilt_deg=0.0):
+    if name == "bent":
+        vol, grid, periodic = _bent(), (2, 2, 2), ()
+        fmap = _map(vol, _warp())
+        t = tile(vol, grid)
+    elif name == "box":
+        vol = _box()
+        fmap, t = _map(vol), tile(vol, (2, 2, 2))
+    else:
+        t, fmap = _ring_tiling(np.pi / 2, grid=(2, 2, 4))
+    plan = A.plan_assembly(t, fmap)
+    joints = J.plan_joints(t, fmap, SPEC)
+    if not all_faces:
+        joints = A.select_joints(joints, t, plan)
+    if tilt_deg:
+        joints = [_tilted(j, k, tilt_deg) for k, j in enumerate(joints)]
+    pieces = C.compose(t, fmap, joints, 1.0)
+    return t, plan, joints, {p.id: p.mesh for p in pieces}
+
+
+def _tilted(j, k, deg):
+    """The joint with its pin turned by deg towards one of four sides (by k), so no two neighbours' pins agree."""
+    d = np.asarray(j.direction)
+    e1 = np.cross(np.eye(3)[int(np.argmin(np.abs(d)))], d)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    side = np.cos(k * np.pi / 2) * e1 + np.sin(k * np.pi / 2) * e2
+    new = np.cos(np.radians(deg)) * d + np.sin(np.radians(deg)) * side
+    new.setflags(write=False)
+    return dataclasses.replace(j, direction=new)
+
+
+def _assert_comes_apart(res, ids):
+    assert res["welded"] is False and res["stuck"] == []
+    assert sorted(res["assembly_order"]) == sorted(ids) and len(set(res["assembly_order"])) == len(ids)
+    joins = [s for s in res["steps"] if s["kind"] == "join"]
+    assert len(joins) == len(ids) - 1
+    for s in joins:
+        assert abs(np.linalg.norm(s["direction"]) - 1.0) < 1e-9
+        assert s["joints"] and set(s["into"]) <= set(s["onto"])
+    # a block is placed before anything joins onto it
+    seen = set()
+    for s in res["steps"]:
+        if s["kind"] == "join":
+            assert set(s["onto"]) <= seen
+        seen |= set(s["pieces"])
+
+
+@pytest.mark.parametrize("name", ["bent", "ring"])
+def test_real_pieces_come_apart_along_the_plan(name):
+    t, plan, joints, pieces = _built(name)
+    res = A.verify_disassembly(pieces, joints, plan)
+    _assert_comes_apart(res, list(pieces))
+    lines = A.steps_in_words(res)
+    assert lines[0] == f"1. Place {res['assembly_order'][0]} on the table."
+    assert len(lines) == len(res["steps"]) and all("Slide" in x for x in lines if "place" not in x.lower())
+
+
+def test_every_face_jointed_in_a_bent_block_still_comes_apart_in_blocks():
+    _, plan, joints, pieces = _built("bent", all_faces=True)
+    assert len(joints) == 12
+    _assert_comes_apart(A.verify_disassembly(pieces, joints, plan), list(pieces))
+
+
+def test_every_face_jointed_is_welded_one_piece_at_a_time():
+    _, plan, joints, pieces = _built("box", all_faces=True)
+    res = A.verify_disassembly(pieces, joints, plan, groups=False)
+    assert res["welded"] is True and res["stuck"] == sorted(pieces)
+    assert sorted(res["assembly_order"]) == sorted(pieces)
+    assert A.steps_in_words(res)[-1].startswith("Warning: the puzzle is welded: p0-0-0, ")
+
+
+def test_crossed_pins_weld_the_puzzle_and_name_the_pieces():
+    _, plan, joints, pieces = _built("box", all_faces=True, tilt_deg=25.0)
+    res = A.verify_disassembly(pieces, joints, plan)
+    assert res["welded"] is True and set(res["stuck"]) == set(pieces)
+
+
+def test_a_sweep_into_a_neighbour_is_caught():
+    _, plan, joints, pieces = _built("box")
+    scene = A._Scene({k: pieces[k] for k in ("p0-0-0", "p1-0-0")})
+    ok, hit = scene.sweep_clear(["p1-0-0"], ["p0-0-0"], np.array([-1.0, 0.0, 0.0]), 1.0, 1e-4)
+    assert not ok and hit[:2] == ("p1-0-0", "p0-0-0")
+    ok, _ = scene.sweep_clear(["p1-0-0"], ["p0-0-0"], np.array([1.0, 0.0, 0.0]), 1.0, 1e-4)
+    assert ok
