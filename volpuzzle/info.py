@@ -77,6 +77,15 @@ def model_info(vol, path=None, patch=0, meta=None):
     from .spline.measure import bbox, volume
     from .spline.seams import find_seams
 
+    if meta is None and path is not None:
+        # Callers that only loaded the Volume still get format, patch count and units (the file is re-read).
+        from .errors import VolpuzzleError
+        from .io import load_model_with_meta
+
+        try:
+            meta = load_model_with_meta(path, patch)[1]
+        except (VolpuzzleError, OSError):
+            meta = None
     meta = dict(meta or {})
     d = {}
     if path is not None:
