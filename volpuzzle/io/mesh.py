@@ -353,6 +353,11 @@ def _fill_boundary_loops(mesh):
 def repair_mesh(mesh):
     """trimesh's repairs plus hole filling: merge vertices, drop degenerate and duplicate faces, fill holes,
     fix winding and turn normals outward -> a new Trimesh (check it again)."""
+    with np.errstate(all="ignore"):  # a flat input has zero volume, and trimesh divides by it
+        return _repair(mesh)
+
+
+def _repair(mesh):
     m = mesh.copy()
     m.merge_vertices()
     m.update_faces(m.nondegenerate_faces())

@@ -1,0 +1,186 @@
+"""Mesh input: every malformed and broken file of tests/data/meshes gets a decision, and refusals name the file."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from volpuzzle.errors import ModelError
+from volpuzzle.io.mesh import load_mesh, load_mesh_scaled
+
+DATA = Path(__file__).parent / "data" / "meshes"
+BAD = DATA / "malformed"
+BROKEN = DATA / "broken"
+
+
+def refused(path, *needles, repair=False):
+    with pytest.raises(ModelError) as e:
+        load_mesh(path, repair=repair)
+    msg = str(e.value)
+    assert str(path) in msg
+    for n in needles:
+        assert n in msg, msg
+    return msg
+
+
+def tetra_ok(path):
+    m = load_mesh(path)
+    assert len(m.faces) == 4 and m.is_watertight
+    assert m.volume == pytest.approx(1 / 6)
+
+
+# --- malformed STL: refused (the file is wrong, nothing sensible can be read) --------------------------------------
+def test_empty_file_is_refused():
+    refused(BAD / "empty.stl", "empty")
+
+
+def test_facet_with_four_vertices_is_refused_with_its_line():
+    refused(BAD / "fourVertices.ascii.stl", "facet 1 (line 2) has 4 vertices")
+
+
+def test_quad_facet_is_refused():
+    refused(BAD / "quad.ascii.stl", "has 4 vertices", "triangles")
+
+
+def test_facet_with_two_vertices_is_refused():
+    refused(BAD / "twoVertices.ascii.stl", "has 2 vertices")
+
+
+def test_binary_count_disagreeing_with_size_is_refused():
+    # the header claims 66 triangles, the file holds 4: truncated or a wrong counter, we cannot tell which
+    refused(BAD / "incorrectFaceCounter.bin.stl", "says 66 triangles", "4 triangles after the header")
+
+
+def test_missing_face_leaves_an_open_surface():
+    refused(BAD / "missingFace.ascii.stl", "3 open (boundary) edges", "model.repair")
+
+
+def test_single_face_is_not_a_solid_even_repaired():
+    refused(BAD / "singleFace.ascii.stl", "3 open (boundary) edges")
+    refused(BAD / "singleFace.ascii.stl", "even after repair", "encloses no volume", repair=True)
+
+
+# --- malformed STL that is still readable: accepted, because the triangles alone define the solid -------------------
+def test_missing_endsolid_is_accepted_when_every_facet_is_complete():
+    tetra_ok(BAD / "missingEndsolid.ascii.stl")
+
+
+def test_solid_name_mismatch_is_accepted():
+    tetra_ok(BAD / "solidNameMismatch.ascii.stl")
+
+
+@pytest.mark.parametrize("name", ["missingNormal.ascii.stl", "notANumberNormal.ascii.stl", "wrongNormal.ascii.stl",
+                                  "wrongNormals.ascii.stl"])
+def test_bad_facet_normals_are_ignored(name):
+    # slicers recompute normals from the vertex order; a missing, NaN, zero or wrong normal changes nothing
+    tetra_ok(BAD / name)
+
+
+def test_binary_stl_whose_header_starts_with_solid_is_read_as_binary():
+    m = load_mesh(BAD / "wrongHeader.bin.stl")
+    assert m.is_watertight and m.volume == pytest.approx(1e6)
+
+
+def test_truncated_ascii_facet_is_refused(tmp_path):
+    text = (BAD / "missingEndsolid.ascii.stl").read_text().splitlines()
+    p = tmp_path / "cut.stl"
+    p.write_text("\n".join(text[:-3]))
+    refused(p, "truncated", "facet 4")
+
+
+def test_nan_vertex_is_refused(tmp_path):
+    p = tmp_path / "nan.stl"
+    p.write_text((BAD / "solidNameMismatch.ascii.stl").read_text().replace("vertex 1 0 0", "vertex nan 0 0", 1))
+    refused(p, "non-finite vertex")
+
+
+# --- broken meshes ----------------------------------------------------------------------------------------------------
+def test_holes_are_counted_and_located():
+    refused(BROKEN / "cgal_elephant-with-holes.off", "1353 open (boundary) edges", "near (")
+
+
+def test_holes_are_filled_by_repair():
+    m = load_mesh(BROKEN / "cgal_elephant-with-holes.off", repair=True)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0 and m.body_count == 1
+
+
+def test_flipped_faces_are_counted():
+    refused(BROKEN / "cgal_cube-shuffled.off", "9 edges where neighbouring triangles are inconsistently oriented")
+
+
+def test_flipped_faces_are_fixed_by_repair():
+    m = load_mesh(BROKEN / "cgal_cube-shuffled.off", repair=True)
+    assert m.is_winding_consistent and m.volume == pytest.approx(8.0)
+
+
+def test_two_bodies_are_refused_even_repaired():
+    refused(BROKEN / "trimesh_multibody.stl", "2 separate bodies")
+    refused(BROKEN / "trimesh_multibody.stl", "even after repair", "2 separate bodies", repair=True)
+
+
+def test_triangle_soup_is_refused():
+    refused(BROKEN / "trimesh_soup.stl", "300 open (boundary) edges", "100 separate bodies")
+
+
+def test_inside_out_mesh_is_refused_and_repaired(tmp_path):
+    m = trimesh.creation.box((2, 3, 4))
+    m.invert()
+    p = tmp_path / "inside_out.off"
+    m.export(p)
+    refused(p, "face inward")
+    assert load_mesh(p, repair=True).volume == pytest.approx(24.0)
+
+
+def test_missing_file_and_bad_extension(tmp_path):
+    refused(tmp_path / "nope.stl", "no such file")
+    p = tmp_path / "mesh.xyz"
+    p.write_text("1 2 3")
+    refused(p, "unsupported mesh extension")
+
+
+def test_garbage_off_is_refused(tmp_path):
+    p = tmp_path / "bad.off"
+    p.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")
+    refused(p, "truncated")
+    p.write_text("PLY\n")
+    refused(p, "not an OFF file")
+
+
+def test_garbage_obj_gives_a_model_error(tmp_path):
+    p = tmp_path / "bad.obj"
+    p.write_bytes(b"\x00\x01garbage\xff" * 10)
+    with pytest.raises(ModelError) as e:
+        load_mesh(p)
+    assert str(p) in str(e.value)
+
+
+# --- formats and scaling ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ext", ["stl", "obj", "ply", "off", "glb", "3mf"])
+def test_every_format_round_trips(tmp_path, ext):
+    m = trimesh.creation.icosphere(1, radius=10)
+    p = tmp_path / f"ball.{ext}"
+    if ext == "3mf":
+        from volpuzzle.io.threemf import write_3mf
+
+        write_3mf(p, [("ball", m.vertices, m.faces, None, None)])
+    else:
+        m.export(p)
+    got = load_mesh(p)
+    assert len(got.faces) == len(m.faces)
+    assert got.volume == pytest.approx(m.volume, rel=1e-5)
+
+
+def test_units_then_size(tmp_path):
+    p = tmp_path / "box.stl"
+    trimesh.creation.box((1, 2, 4)).export(p)
+    m, scale = load_mesh_scaled(p, unit_scale=10.0)
+    assert scale == 10.0 and np.allclose(sorted(m.extents), [10, 20, 40])
+    m, scale = load_mesh_scaled(p, unit_scale=25.4, size=100)
+    assert np.max(m.extents) == pytest.approx(100) and scale == pytest.approx(25.0)
+
+
+def test_gear_wheel_loads_closed():
+    m = load_mesh(DATA / "stlmodels_gearwheel.bin.stl")
+    assert m.is_watertight and m.volume > 0
+    assert m.extents[2] == pytest.approx(8.0)
