@@ -142,12 +142,13 @@ def test_negative_amplitude_refused():
 SYMMETRIES = [(s, (f0, f1)) for s in (False, True) for f0 in (False, True) for f1 in (False, True)]
 
 
+@pytest.mark.parametrize("amplitude", [0.25, 3.0])  # 3.0: control points clamped into D, the seam must still hold
 @pytest.mark.parametrize("axis", [0, 2])
 @pytest.mark.parametrize("swap,flip", SYMMETRIES)
-def test_periodic_faces_agree_under_seam(axis, swap, flip):
+def test_periodic_faces_agree_under_seam(axis, swap, flip, amplitude):
     dom = tuple(tuple(r) for r in DOMAIN.T)
     seam = Seam(axis, swap, flip, dom)
-    R = _family(seed=5, seams={axis: seam})(0.25)
+    R = _family(seed=5, seams={axis: seam})(amplitude)
     rng = np.random.default_rng(4)
     on_max = _face_points(DOMAIN, axis, 1, rng)
     # the point at (s, t) on the max face is the point g(s, t) on the min face: R must respect that

@@ -66,6 +66,13 @@ def test_safe_amplitude_is_hi_when_hi_certifies_and_bisects_otherwise():
     assert verify_warp(fam, s)["bijective"] is True
 
 
+def test_periodic_warp_certifies():
+    from volpuzzle.spline.seams import Seam
+    seams = {2: Seam(2, True, (False, True), ((0.0, 1.0),) * 3), 0: Seam(0)}
+    out = verify_warp(warp_family(UNIT, 6, np.random.default_rng(9), seams), 0.25)
+    assert out["bijective"] is True and out["jacobian_min_coefficient"] > 0
+
+
 @settings(max_examples=6, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), amplitude=st.floats(0.0, 0.25), n=st.sampled_from([4, 6, 8]))
 def test_small_amplitudes_certify(seed, amplitude, n):

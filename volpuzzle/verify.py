@@ -102,11 +102,12 @@ def verify_warp(family, amplitude, max_depth=_DEFAULT_DEPTH):
     """Certify that R = family(amplitude) maps D one-to-one onto D.
 
     Why det J > 0 is enough: R keeps D's boundary (corners and edges fixed, each face mapped into itself, see
-    randomize), so R restricted to the boundary is a degree-one map of the boundary sphere onto itself. A map with
-    det J > 0 on the compact box is a local homeomorphism; with the boundary kept, every interior point has exactly
-    degree(R) = 1 preimage counted with the (positive) Jacobian signs, so exactly one: R is a bijection of D (and a
-    diffeomorphism of its interior). The certificate is a lower bound on det J from Bezier coefficients after
-    subdivision, so "proved" is exact up to floating point, not a sampled claim.
+    randomize), so on the boundary R is homotopic to the identity through (1 - t) x + t R(x), which stays in each
+    (convex) face: R restricted to the boundary has degree one, hence deg(R, D, y) = 1 for every interior y. With
+    det J > 0 on the closed box, R is a local homeomorphism and every preimage counts +1 in that degree, so each
+    interior point has exactly one preimage: R is a bijection of D onto D (a diffeomorphism of the interior). The
+    certificate is a lower bound on det J from Bezier coefficients after subdivision, so "proved" is exact up to
+    floating point, not a sampled claim.
 
     Returns {"amplitude", "jacobian_min_coefficient", "bijective": True, "status": "proved"}. Raises GeometryError,
     phrased as a spec problem on randomize.amplitude, with the smallest coefficient, where it is, and the largest
