@@ -248,6 +248,18 @@ def cage_boundary(vol):
     return mesh
 
 
+def _farthest(surface, pts, keep=64):
+    """The points farthest from `surface` and their distances: a k-d tree over the surface's vertices and triangle
+    centres picks candidates, the exact point-triangle distance (no rtree needed) settles them."""
+    from scipy.spatial import cKDTree
+
+    probe = np.concatenate([surface.vertices, surface.triangles_center])
+    approx, _ = cKDTree(probe).query(pts)
+    pick = np.argsort(approx)[::-1][:keep]
+    _, dist, _ = trimesh.proximity.closest_point_naive(surface, pts[pick])
+    return pts[pick], np.asarray(dist)
+
+
 def check_inside(mesh, cage, tol=1e-6):
     """Raise ModelError unless every point of `mesh` (mm) lies inside the cage Volume, saying how far (mm) the mesh
     reaches outside. The cage's boundary is sampled (chords cut curved faces by a little: keep some padding).
@@ -267,7 +279,7 @@ def check_inside(mesh, cage, tol=1e-6):
     from .geometry import to_trimesh
 
     pts = np.asarray(to_trimesh(out).vertices)
-    _, dist, _ = trimesh.proximity.closest_point(bnd, pts)
+    pts, dist = _farthest(bnd, pts)
     worst = int(np.argmax(dist))
     raise ModelError(
         f"model.cage: the mesh is not inside the cage: it reaches {float(dist[worst]):.3g} mm outside, at "

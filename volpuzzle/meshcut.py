@@ -119,50 +119,52 @@ def _joint_reach(j):
     return r, back, front
 
 
-def _probe_points(center, direction, r, back, front, n_ring=12, n_len=6):
-    """Points on the surface of the joint's envelope cylinder (axis, rim, caps) -> (k, 3)."""
+def _envelope(center, direction, r, back, front, segments=24):
+    """The joint's room as a Manifold cylinder from `back` behind the face to `front` in front of it (mm)."""
+    import manifold3d
+
     e1, e2, n = _frame(direction)
-    ang = np.linspace(0, 2 * np.pi, n_ring, endpoint=False)
-    zs = np.linspace(-back, front, n_len)
-    ring = np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2
-    pts = [center + z * n + r * ring for z in zs]
-    pts += [center + z * n + 0.5 * r * ring for z in (-back, front)]
-    pts += [center + z * n for z in zs]
-    return np.concatenate([np.atleast_2d(p) for p in pts])
+    m = np.zeros((3, 4))
+    m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
+    cyl = manifold3d.Manifold.cylinder(back + front, r, -1.0, segments).translate([0.0, 0.0, -back])
+    return _check(cyl.transform(m), "joint", "the joint's envelope")
 
 
-def _fits(mesh, center, direction, r, back, front, wall):
-    """True when the joint's envelope, grown by `wall`, lies inside the closed mesh."""
-    pts = _probe_points(center, direction, r + wall, back + wall, front + wall)
-    if not np.all(mesh.contains(pts)):
-        return False
-    # contains() on points does not see a thin fin of outside between them: also ask for the distance
-    from trimesh.proximity import signed_distance
-
-    inner = _probe_points(center, direction, r, back, front)
-    return bool(np.all(signed_distance(mesh, inner) >= wall * 0.999))
+def _fits(solid, center, direction, r, back, front, wall):
+    """True when the joint's room grown by `wall` lies inside `solid` (a Manifold): nothing of it is left over
+    after subtracting the solid. Exact up to the polygon, and needs no ray tests."""
+    env = _envelope(center, direction, r + wall, back + wall, front + wall)
+    rest = env - solid
+    return rest.is_empty() or rest.volume() <= 1e-6 * env.volume()
 
 
 def keep_joints_inside(joints, mesh, wall=1.5, max_shift=None, steps=6):
     """Joints whose pin or hole would break through the mesh's surface (deep cavities, the paper's Fig. 15) are moved
     along their face until they are inside with `wall` mm around them, or dropped.
 
-    joints: iterable of joint.Joint (mm); mesh: the closed trimesh in mm. -> (kept joints, records) with records
+    joints: iterable of joint.Joint (mm); mesh: the closed trimesh (or its Manifold) in mm. -> (kept joints, records) with records
     {"pin_piece", "hole_piece", "action": "kept"|"moved"|"dropped", "distance": mm moved}; only moved and dropped
     joints are recorded. max_shift: farthest move in mm (default 3 joint radii).
     """
+    import manifold3d
+
+    from .geometry import from_trimesh
     from .joint import piece_id
 
+    solid = mesh if isinstance(mesh, manifold3d.Manifold) else from_trimesh(mesh, "mesh model")
     kept, records = [], []
     for j in joints:
         r, back, front = _joint_reach(j)
         c0 = np.asarray(j.center, float)
         d = np.asarray(j.direction, float)
-        if _fits(mesh, c0, d, r, back, front, wall):
+        limit = float(max_shift) if max_shift is not None else 3.0 * (r + wall)
+        # every trial below meets only the mesh near this joint: cut it out once
+        reach = limit + r + wall + max(back, front) + wall
+        local = solid ^ manifold3d.Manifold.cube([2 * reach] * 3, True).translate(c0)
+        if _fits(local, c0, d, r, back, front, wall):
             kept.append(j)
             continue
         e1, e2, _ = _frame(d)
-        limit = float(max_shift) if max_shift is not None else 3.0 * (r + wall)
         found = None
         # rings of candidate centres on the face plane, nearest first
         for k in range(1, steps + 1):
@@ -170,7 +172,7 @@ def keep_joints_inside(joints, mesh, wall=1.5, max_shift=None, steps=6):
             n_ang = max(8, int(np.ceil(2 * np.pi * k)))
             for a in np.linspace(0, 2 * np.pi, n_ang, endpoint=False):
                 c = c0 + dist * (np.cos(a) * e1 + np.sin(a) * e2)
-                if _fits(mesh, c, d, r, back, front, wall):
+                if _fits(local, c, d, r, back, front, wall):
                     found = (c, dist)
                     break
             if found:
