@@ -283,6 +283,79 @@ def step_problems(tiling, plan):
     return out
 
 
+def _split_normals(tiling, fmap, step, k=7):
+    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
+    mv, fx = set(step.moving), set(step.fixed)
+    s = (np.arange(k) + 0.5) / k
+    out = []
+    for f in tiling.faces:
+        lo, up = tuple(f.lower), tuple(f.upper)
+        if not ((lo in mv and up in fx) or (up in mv and lo in fx)):
+            continue
+        box = tiling.cells[lo].box
+        a = f.axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        uvw = np.zeros((k * k, 3))
+        uvw[:, a] = box[1, a]
+        uvw[:, b] = box[0, b] + np.repeat(s, k) * (box[1, b] - box[0, b])
+        uvw[:, c] = box[0, c] + np.tile(s, k) * (box[1, c] - box[0, c])
+        _, jac = fmap.evaluate_with_jacobian(uvw)
+        n = np.cross(jac[:, :, b], jac[:, :, c]) * float(getattr(fmap, "orientation", 1) or 1)
+        out.append(n * (1.0 if up in mv else -1.0))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def split_directions(tiling, fmap, plan):
+    """Per step, the mm direction in which its moving block should leave: the area-weighted mean normal of the whole
+    split surface, which bumps cannot tilt the way they tilt the normal at one point -> list of (direction (3,),
+    min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
+    leave along it without touching the other block)."""
+    out = []
+    for step in plan.steps:
+        ns = _split_normals(tiling, fmap, step)
+        d = ns.sum(axis=0)
+        size = float(np.linalg.norm(d))
+        if size < 1e-12:
+            out.append((np.zeros(3), -1.0))
+            continue
+        d = d / size
+        unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
+        out.append((d, float((unit @ d).min())))
+    return out
+
+
+def reorient_joints(joints, tiling, fmap, plan):
+    """The joints turned to point along their split's mean normal (split_directions), so a block slides off all its
+    pins at once; a pin's base (and its hole's opening) reaches back by reach * tan(turn) more, so a turned pin stays
+    attached over the tilted face. Joints on no step are returned unchanged."""
+    import dataclasses
+
+    dirs = split_directions(tiling, fmap, plan)
+    by_pair = {}
+    for (d, _), step in zip(dirs, plan.steps):
+        mv = set(step.moving)
+        for n in step.joints:
+            f = tiling.faces[n]
+            # the pin leaves the lower cell: along d when the upper cell is the one that moves
+            by_pair[(tuple(f.lower), tuple(f.upper))] = d if tuple(f.upper) in mv else -d
+    out = []
+    for j in joints:
+        d = by_pair.get((tuple(j.pin_cell), tuple(j.hole_cell)))
+        if d is None or not np.any(d):
+            out.append(j)
+            continue
+        cos = float(np.clip(np.dot(d, j.direction), -1.0, 1.0))
+        if cos <= 0.2:
+            out.append(j)  # a split this bent cannot take a straight pin; verify will say so
+            continue
+        reach = j.radius * (1.15 if j.shape == "snap" else 1.0) + j.clearance
+        extra = reach * np.sqrt(1.0 - cos * cos) / cos
+        new = np.array(d, dtype=float)
+        new.setflags(write=False)
+        out.append(dataclasses.replace(j, direction=new, base_depth=round(float(j.base_depth + extra), 4)))
+    return out
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Replaying the plan on the real meshes
 
@@ -399,7 +472,7 @@ def _candidates(block, planned, max_tries, groups=True):
 def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=None, max_tries=24, groups=True):
     """Replay the plan on the real meshes -> dict.
 
-    pieces: {id: trimesh mesh in mm} (or Piece objects); joints: volpuzzle.joint.Joint list (the ones built);
+    pieces: {id: trimesh mesh in mm} (or a list of compose.Piece); joints: volpuzzle.joint.Joint list (the ones built);
     plan: AssemblyPlan. A block leaves along the mean mm direction of its joints to the other block (the centroid
     difference when none cross) and is swept until it is past the other block; every sample must overlap each other
     piece by at most limit_frac of the smaller piece volume. Keys: assembly_order (ids, every piece once), steps (in
@@ -410,6 +483,8 @@ def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=No
     groups=False allows only one piece at a time (then any grid with a cycle of jointed faces is welded).
     """
     t0 = time.perf_counter()
+    if not isinstance(pieces, dict):
+        pieces = {p.id: p.mesh for p in pieces}
     scene = _Scene(pieces)
     cell_of = {piece_id(c): tuple(c) for c in (tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids)}
     joints = list(joints or [])
