@@ -16,6 +16,7 @@ from . import knots as knots_mod
 _PARALLEL_MIN = 4096  # points; below this the serial kernel is faster than waking threads
 _TINY = 256  # points; below this, and before the compiled kernels are loaded, use numpy
 _LOADED = set()
+_MODE = {3: np.empty(0), 4: np.empty((0, 0))}
 _FAST = []
 
 
@@ -170,6 +171,12 @@ class Volume:
         return np.ascontiguousarray(net, dtype=float)
 
     @cached_property
+    def _knet(self):
+        # The compiled kernels' copy: zero-padded along v and w for their unrolled loops.
+        fast = _fast_module()
+        return self._net if fast is None else fast.padded_net(self._net, self.degrees)
+
+    @cached_property
     def _last_spans(self):
         return tuple(basis.last_span(k, p) for k, p in zip(self.knots, self.degrees))
 
@@ -198,7 +205,7 @@ class Volume:
         der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
         fn = fast.eval_parallel if parallel else fast.eval_serial
         (ku, kv, kw), (pu, pv, pw), (lu, lv, lw) = self.knots, self.degrees, self._last_spans
-        fn(uvw, ku, kv, kw, pu, pv, pw, lu, lv, lw, self._net, out, der, want_der)
+        fn(uvw, ku, kv, kw, pu, pv, pw, lu, lv, lw, self._knet, out, der, want_der, _MODE[d])
         return out, (der if want_der else None)
 
     def _numpy_sums(self, uvw, want_der):
