@@ -37,7 +37,7 @@ _STEM_EM = 0.178  # stem width of DejaVu Sans Bold in em, measured on '1' (0.283
 _FLAT_EM = 0.002  # largest distance between a glyph curve and its polygon, em
 _SAMPLE_MM = 0.4  # spacing of surface samples under the text and of the face's boundary samples
 _REFINE_MM = 0.8  # longest edge of the prism before it is bent onto the surface
-_CENTRES = np.linspace(0.15, 0.85, 8)  # candidate centres, fractions across the face
+_CENTRES = np.linspace(0.1, 0.9, 9)  # candidate centres, fractions across the face
 
 
 def _m3():
@@ -67,6 +67,8 @@ def _outline(text):
     from matplotlib.path import Path
     from matplotlib.textpath import TextPath
 
+    if not text.strip():
+        return (), np.zeros((2, 2))
     path = TextPath((0.0, 0.0), text, size=1.0, prop=_font())
     loops, cur = [], []
     for seg, code in path.iter_bezier():

@@ -1,0 +1,267 @@
+"""label: the id's outlines (holes right), the site (inner face, jointless first, clear of joints), and the engraving
+(one closed solid, the expected volume, only near the chosen face, >= 0.4 mm deep also on a curved face)."""
+
+import time
+from functools import lru_cache
+
+import manifold3d as m3
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volpuzzle import compose as C
+from volpuzzle import geometry as G
+from volpuzzle import joint as J
+from volpuzzle import label as L
+from volpuzzle.errors import GeometryError
+from volpuzzle.mapping import Map
+from volpuzzle.spline import Volume
+from volpuzzle.tile import tile
+
+HOLES = {"p": 1, "0": 1, "4": 1, "6": 1, "8": 2, "9": 1}
+
+
+def _clamped(n, p):
+    inner = np.linspace(0, 1, n - p + 1)[1:-1]
+    return np.concatenate([np.zeros(p + 1), inner, np.ones(p + 1)])
+
+
+def _holes(cs):
+    """Contours wound clockwise (manifold's holes) of a CrossSection."""
+    n = 0
+    for p in cs.to_polygons():
+        p = np.asarray(p)
+        area = 0.5 * np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1])
+        n += area < 0
+    return n
+
+
+def _covers(cs, x, y, r=0.05):
+    """Whether the cross-section covers a small square at (x, y)."""
+    probe = m3.CrossSection.square((2 * r, 2 * r), True).translate((x, y))
+    return (cs ^ probe).area() > 0.5 * (2 * r) ** 2
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# text
+
+
+def test_cross_section_of_an_id_has_its_holes():
+    cs = L.text_cross_section("p0-1-3", 5.0)
+    assert cs is not None and cs.area() > 0
+    (x0, y0, x1, y1) = cs.bounds()
+    assert abs(y1 - y0 - 5.0) < 1e-6 and abs(x0 + x1) < 1e-6 and abs(y0 + y1) < 1e-6  # ink box centred, 5 mm tall
+    assert _holes(cs) == 2  # the bowl of 'p' and the counter of '0'
+    parts = sorted(cs.decompose(), key=lambda p: p.bounds()[0])
+    assert len(parts) == 6 and [_holes(p) for p in parts] == [1, 1, 0, 0, 0, 0]
+    # the counter of the '0' is empty, its ring is not
+    bx0, by0, bx1, by1 = parts[1].bounds()
+    cx, cy = 0.5 * (bx0 + bx1), 0.5 * (by0 + by1)
+    assert not _covers(cs, cx, cy) and _covers(cs, bx0 + 0.3, cy)
+    again = L.text_cross_section("p0-1-3", 5.0)
+    assert [np.asarray(p).tolist() for p in again.to_polygons()] == [np.asarray(p).tolist() for p in cs.to_polygons()]
+
+
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(st.tuples(*[st.integers(0, 19)] * 3), st.floats(4.5, 8.0))
+def test_cross_section_any_id(index, height):
+    text = "p" + "-".join(map(str, index))
+    cs = L.text_cross_section(text, height)
+    assert cs.area() > 0
+    x0, y0, x1, y1 = cs.bounds()
+    assert abs(y1 - y0 - height) < 1e-6 and abs(x0 + x1) < 1e-6
+    assert _holes(cs) == sum(HOLES.get(ch, 0) for ch in text)
+
+
+def test_text_too_small_to_print_gives_none():
+    h = L.min_height_mm("p0-1-3")
+    assert L.text_cross_section("p0-1-3", 0.98 * h) is None
+    assert L.text_cross_section("p0-1-3", h) is not None
+    assert L.text_cross_section("", 5.0) is None
+    # the stems are MIN_STROKE_MM wide at the smallest height: eroding by just under half of it leaves each glyph
+    cs = L.text_cross_section("p0-1-3", h)
+    assert len(cs.offset(-0.45 * L.MIN_STROKE_MM, m3.JoinType.Round).decompose()) >= 6
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# a box puzzle
+
+
+def _box_model():
+    cp = np.zeros((2, 2, 2, 3))
+    for i, j, k in np.ndindex(2, 2, 2):
+        cp[i, j, k] = (60 * i, 50 * j, 30 * k)
+    return Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
+
+
+@lru_cache(maxsize=None)
+def _box_puzzle(v_joint=True):
+    """Piece p0-0-0 of a 2 x 2 x 1 box puzzle; without v_joint its v-face carries no joint (as assembly.py may decide)."""
+    vol = _box_model()
+    fmap = Map(vol)
+    tiling = tile(vol, (2, 2, 1))
+    joints = J.plan_joints(tiling, fmap)
+    if not v_joint:
+        joints = [j for j in joints if not (j.axis == 1 and tuple(j.pin_cell) == (0, 0, 0))]
+    sampling = C.sample_parameters(tiling, fmap, 0.05)
+    cell = tiling.cell((0, 0, 0))
+    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, joints).mesh, cell.id)
+    return tiling, fmap, joints, cell, body
+
+
+def _removed(body, out):
+    return G.to_trimesh(body - out)
+
+
+def _axis_gap(solid, j):
+    """Smallest distance mm from a solid to joint j's axis (a long thin rod along it)."""
+    rod = m3.Manifold.cylinder(80.0, 0.01, -1.0, 8).translate((0, 0, -40.0)).transform(J._frame(j))
+    return solid.min_gap(rod, 50.0)
+
+
+def _check_engraving(body, out, site, joints, cell, depth=L.DEPTH_MM):
+    G.check_solid(G.to_trimesh(out), cell.id)
+    cs = L.text_cross_section(site.text, site.height_mm)
+    lost = body.volume() - out.volume()
+    assert abs(lost - cs.area() * depth) <= 0.2 * cs.area() * depth
+    removed = _removed(body, out)
+    z = (removed.vertices - site.center) @ site.normal
+    assert z.min() >= -(depth + 0.02) and z.max() <= 1e-6  # only the skin under the chosen face
+    mine = [j for j in joints if cell.index in (tuple(j.pin_cell), tuple(j.hole_cell))]
+    assert mine
+    rm = G.from_trimesh(removed, "removed")
+    for j in mine:
+        assert _axis_gap(rm, j) >= j.radius + j.clearance + 0.5
+
+
+def test_box_piece_labelled_on_a_jointless_inner_face():
+    tiling, fmap, joints, cell, body = _box_puzzle(v_joint=False)
+    t0 = time.perf_counter()
+    site = L.choose_label_site(cell, tiling, fmap, joints)
+    t1 = time.perf_counter()
+    out = L.engrave(body, site, what=cell.id)
+    t2 = time.perf_counter()
+    print(f"label {cell.id}: site {t1 - t0:.3f} s, engrave {t2 - t1:.3f} s")
+    assert site.face == (1, +1) and not site.has_joint and site.text == "p0-0-0"
+    assert np.allclose(site.normal, [0, 1, 0]) and abs(site.center[1] - 25.0) < 1e-9
+    assert abs(np.dot(site.up, site.normal)) < 1e-12 and site.height_mm >= L.min_height_mm("p0-0-0")
+    _check_engraving(body, out, site, joints, cell)
+
+
+def test_box_piece_with_joints_on_every_face_keeps_clear_of_them():
+    tiling, fmap, joints, cell, body = _box_puzzle()
+    site = L.choose_label_site(cell, tiling, fmap, joints)
+    assert site is not None and site.has_joint
+    face_normals = {(0, 1): [1, 0, 0], (1, 1): [0, 1, 0]}
+    assert np.allclose(site.normal, face_normals[site.face])  # an inner face, never the outside
+    out = L.engrave(body, site, what=cell.id)
+    _check_engraving(body, out, site, joints, cell)
+
+
+def test_site_is_deterministic():
+    tiling, fmap, joints, cell, body = _box_puzzle()
+    a = L.choose_label_site(cell, tiling, fmap, joints)
+    b = L.choose_label_site(cell, tiling, fmap, joints)
+    assert a.face == b.face and np.array_equal(a.center, b.center) and np.array_equal(a.up, b.up)
+    assert a.height_mm == b.height_mm
+
+
+def test_single_cell_has_no_inner_face():
+    vol = _box_model()
+    tiling = tile(vol, (1, 1, 1))
+    assert L.choose_label_site(tiling.cell((0, 0, 0)), tiling, Map(vol), []) is None
+
+
+def test_face_too_small_gives_none():
+    cp = np.zeros((2, 2, 2, 3))
+    for i, j, k in np.ndindex(2, 2, 2):
+        cp[i, j, k] = (12 * i, 10 * j, 10 * k)
+    vol = Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
+    tiling = tile(vol, (2, 1, 1))
+    assert L.choose_label_site(tiling.cell((0, 0, 0)), tiling, Map(vol), []) is None
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# a bent model
+
+
+def _bent(radius=40.0, sweep=100.0, thick=16.0, height=14.0):
+    """A slab bent round an arc (right-handed): u along the arc (cubic, near circular), v inwards, w up."""
+    n = 7
+    ang = np.radians(sweep) * np.linspace(0, 1, n)
+    cp = np.zeros((n, 2, 2, 3))
+    for i, j, k in np.ndindex(n, 2, 2):
+        r = radius + thick / 2 - thick * j
+        cp[i, j, k] = (r * np.cos(ang[i]), r * np.sin(ang[i]), height * k)
+    return Volume((3, 1, 1), (_clamped(n, 3), _clamped(2, 1), _clamped(2, 1)), cp)
+
+
+def _drop(m, origin, down, length):
+    """Heights (along -down) of the first hit of a ray from origin, or None."""
+    hits = m.ray_cast(tuple(origin), tuple(origin + down * length))
+    return None if not hits else np.asarray(hits[0].position)
+
+
+def test_curved_face_keeps_the_depth_under_all_the_text():
+    vol = _bent()
+    fmap = Map(vol)
+    tiling = tile(vol, (1, 2, 1))  # the inner face is the curved surface at mid radius
+    cell = tiling.cell((0, 1, 0))  # the inner shell: its labelled face is convex
+    sampling = C.sample_parameters(tiling, fmap, 0.05)
+    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, []).mesh, cell.id)
+    site = L.choose_label_site(cell, tiling, fmap, [])
+    assert site is not None and site.face == (1, -1)
+    # outward from the inner shell through its outer face: away from the arc's centre
+    assert np.dot(site.normal, site.center * [1, 1, 0]) > 0
+    sag = float(site.heights.max() - site.heights.min())
+    assert sag > 0.5  # the face really bends under the text
+    out = L.engrave(body, site, what=cell.id)
+    G.check_solid(G.to_trimesh(out), cell.id)
+
+    cs = L.text_cross_section(site.text, site.height_mm)
+    inside = np.concatenate([np.asarray(p) for p in cs.offset(-0.1, m3.JoinType.Round).to_polygons()]
+                            + [np.asarray(p) for p in cs.offset(-0.3, m3.JoinType.Round).to_polygons()])
+    frame = site.frame()
+    depths = []
+    for x, y in inside:
+        top = frame[:, 3] + frame[:, 0] * x + frame[:, 1] * y + frame[:, 2] * (site.heights.max() + 1.0)
+        a = _drop(body, top, -site.normal, sag + 5.0)
+        b = _drop(out, top, -site.normal, sag + 5.0)
+        depths.append(np.dot(a - b, site.normal))
+    depths = np.array(depths)
+    assert depths.min() >= L.DEPTH_MM - 1e-6 and depths.max() <= L.DEPTH_MM + 0.15
+    # perpendicular to the curved surface too: every vertex of the groove's floor (strictly inside the glyphs, so not
+    # on a wall) is >= depth from the original surface
+    skin = G.to_trimesh(body)
+    engraved = G.to_trimesh(out)
+    d = engraved.vertices - site.center
+    core = cs.offset(-0.05, m3.JoinType.Round)
+    under = np.array([_covers(core, x, y, 0.01) for x, y in zip(d @ site.right, d @ site.up)])
+    z = d @ site.normal
+    under &= (z < site.heights.max() + 1e-6) & (z > site.heights.min() - 2.0)  # not the far side of the piece
+    _, dist, _ = trimesh.proximity.closest_point(skin, engraved.vertices[under])
+    assert under.sum() > 50 and dist.min() >= L.DEPTH_MM - 5e-3
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# failures
+
+
+def _flat_site(text="p0-0-0", height=5.0):
+    xs, ys = np.linspace(-12, 12, 25), np.linspace(-4, 4, 9)
+    return L.LabelSite(np.zeros(3), np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]), height, (2, 1),
+                       np.zeros(3), False, text, xs, ys, np.zeros((9, 25)), 0.0)
+
+
+def test_engraving_that_splits_the_piece_names_it():
+    slab = m3.Manifold.cube((30.0, 12.0, 0.3), True).translate((0, 0, -0.15))
+    with pytest.raises(GeometryError, match=r"p0-0-0: engraving the label 'p0-0-0' splits the piece"):
+        L.engrave(slab, _flat_site(), what="p0-0-0")
+
+
+def test_engraving_too_small_a_label_names_the_piece():
+    block = m3.Manifold.cube((30.0, 12.0, 5.0), True).translate((0, 0, -2.5))
+    with pytest.raises(GeometryError, match=r"p1-2-3: label 'p0-0-0' at 2.00 mm is too small to print"):
+        L.engrave(block, _flat_site(height=2.0), what="p1-2-3")
