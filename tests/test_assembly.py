@@ -147,11 +147,13 @@ def test_odd_periodic_ring_still_plans():
 
 def test_step_problems_name_a_sliding_step_and_a_loose_one():
     t = tile(_box(), (2, 1, 1))
-    sliding = A.AssemblyPlan(((0, "lower"),), (A.Step(((1, 0, 0),), ((0, 0, 0),), 2, +1, (0,)),), ((0, 0, 0), (1, 0, 0)))
+    sliding = A.AssemblyPlan(((0, "lower"),), (A.Step(((1, 0, 0),), ((0, 0, 0),), 2, +1, (0,)),),
+                             ((0, 0, 0), (1, 0, 0)))
     assert any("slides along face p0-0-0|p1-0-0" in p for p in A.step_problems(t, sliding))
     loose = A.AssemblyPlan((), (A.Step(((1, 0, 0),), ((0, 0, 0),), 0, +1, ()),), ((0, 0, 0), (1, 0, 0)))
     assert any("no joint holds" in p for p in A.step_problems(t, loose))
-    pushing = A.AssemblyPlan(((0, "lower"),), (A.Step(((0, 0, 0),), ((1, 0, 0),), 0, +1, (0,)),), ((1, 0, 0), (0, 0, 0)))
+    pushing = A.AssemblyPlan(((0, "lower"),), (A.Step(((0, 0, 0),), ((1, 0, 0),), 0, +1, (0,)),),
+                             ((1, 0, 0), (0, 0, 0)))
     assert any("push into p1-0-0" in p for p in A.step_problems(t, pushing))
 
 
@@ -255,3 +257,17 @@ def test_a_sweep_into_a_neighbour_is_caught():
     assert not ok and hit[:2] == ("p1-0-0", "p0-0-0")
     ok, _ = scene.sweep_clear(["p1-0-0"], ["p0-0-0"], np.array([1.0, 0.0, 0.0]), 1.0, 1e-4)
     assert ok
+
+
+def test_turned_joints_follow_the_split_and_still_come_apart():
+    t, plan, joints, _ = _built("bent")
+    fmap = _map(_bent(), _warp())
+    dirs = A.split_directions(t, fmap, plan)
+    assert len(dirs) == len(plan.steps) and all(m > 0 for _, m in dirs)
+    turned = A.reorient_joints(joints, t, fmap, plan)
+    assert len(turned) == len(joints)
+    for old, new in zip(joints, turned):
+        assert abs(np.linalg.norm(new.direction) - 1.0) < 1e-9 and float(np.dot(old.direction, new.direction)) > 0.2
+        assert new.base_depth >= old.base_depth
+    pieces = C.compose(t, fmap, turned, 1.0)
+    _assert_comes_apart(A.verify_disassembly(pieces, turned, plan), [p.id for p in pieces])

@@ -139,7 +139,8 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
         mv = set(moving)
         return [n for n, f in enumerate(faces)
                 if (tuple(f.lower) in mv) != (tuple(f.upper) in mv)
-                and (tuple(f.lower) in mv or tuple(f.lower) in fixed) and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
+                and (tuple(f.lower) in mv or tuple(f.lower) in fixed)
+                and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
 
     def choose(cands, axis, sign, lo_cells):
         """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known."""
