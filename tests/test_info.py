@@ -10,10 +10,7 @@ import pytest
 from volpuzzle.io import load_model_with_meta
 from volpuzzle.spline.volume import Volume
 
-pytest.importorskip("volpuzzle.spline.measure")
-pytest.importorskip("volpuzzle.spline.jacobian")
-
-from volpuzzle.info import format_info, model_info  # noqa: E402
+from volpuzzle.info import format_info, model_info
 
 DATA = Path(__file__).parent / "data" / "volumes"
 REFERENCE = {Path(r["file_here"]).name: r

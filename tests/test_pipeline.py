@@ -32,13 +32,15 @@ def test_report_has_every_contract_key(tmp_path):
     assert report["randomize"]["jacobian_min_coefficient"] > 0
     assert [p["id"] for p in report["pieces"]] == ["p0-0-0", "p0-0-1", "p1-0-0", "p1-0-1"]
     for j in report["joints"]:
-        assert abs(np.linalg.norm(j["direction"]) - 1) < 1e-9
+        assert abs(np.linalg.norm(j["direction"]) - 1) < 1e-5  # the report rounds to 6 decimals
     for stage in ("tile", "joint", "randomize", "verify", "compose", "export"):
         assert stage in report["timings_s"]
     assert report["spec"]["output"]["tolerance"] == 0.5
 
 
 def test_same_seed_same_bytes(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
     a = volpuzzle.build(small_box_spec(tmp_path / "a"), jobs=1)
     b = volpuzzle.build(small_box_spec(tmp_path / "b"), jobs=2)
     for pa, pb in zip(a["pieces"], b["pieces"]):

@@ -9,7 +9,6 @@ from hypothesis import strategies as st
 
 from volpuzzle.errors import GeometryError, ModelError
 
-pytest.importorskip("volpuzzle.spline.jacobian", reason="the kernel's exact Jacobian module is not there yet")
 from volpuzzle.randomize import uniform_knots, warp_family
 from volpuzzle.spline import Volume
 from volpuzzle.verify import safe_amplitude, verify_model, verify_warp

@@ -461,6 +461,15 @@ def plan_joints(tiling, fmap, joint_spec=None):
     if problems:
         raise SpecError(problems)
 
+    if r_given is not None:
+        # A pin wider than its face is the real mistake; say so before any length fit derived from it.
+        f = min(tiling.faces, key=lambda f: _face_side(tiling, geo, f))
+        side = _face_side(tiling, geo, f)
+        if sizes.radius + sizes.clearance >= 0.5 * side:
+            r_max = _largest_radius(tiling, geo, sizes, 0.5 * side)
+            raise SpecError(
+                f"joints.radius: a pin of radius {sizes.radius:g} does not fit the face between {piece_id(f.lower)} "
+                f"and {piece_id(f.upper)}, {side:.1f} mm across (got {sizes.radius:g}, expected at most {r_max:g})")
     intr = _intrusions(tiling, geo, sizes)
     if l_given is None:
         # a derived length shrinks to what the thinnest piece holds
