@@ -56,9 +56,10 @@ class Timer:
 class Model:
     """The model M in mm, ready for the stages, and what the report says of it."""
 
-    volume: object  # spline.Volume, control points in mm
+    volume: object  # spline.Volume, control points in mm (the cage, in mesh mode)
     scale: float  # mm per model unit, including `size`
     info: dict
+    mesh: object = None  # trimesh.Trimesh in mm, in mesh mode: each piece is finally intersected with it
 
 
 def _scaled(vol, factor):
@@ -78,8 +79,7 @@ def load_model_for(spec):
     elif ms.nurbs is not None:
         vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
     else:
-        raise SpecError("model.mesh: mesh models are not supported yet (expected model.nurbs or model.builtin)",
-                        source=spec.source)
+        return _load_mesh_model(spec)
     scale = ms.unit_scale
     vol = _scaled(vol, scale)
     if ms.size is not None:
@@ -89,6 +89,23 @@ def load_model_for(spec):
         vol = _scaled(vol, factor)
         scale *= factor
     return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale})
+
+
+def _load_mesh_model(spec):
+    """A closed mesh in mm and the cage fitted around it (paper section 5)."""
+    from .cage import check_inside, make_cage
+    from .io.mesh import load_mesh_scaled
+
+    ms = spec.model
+    if spec.joints.space == "domain" and spec.joints.style != "none":
+        raise SpecError("joints.space: pins built in the domain are not supported with a mesh model "
+                        "(got domain, expected physical)", source=spec.source)
+    mesh, scale = load_mesh_scaled(ms.mesh, unit_scale=ms.unit_scale, size=ms.size, repair=ms.repair)
+    cage, cage_info = make_cage(mesh, ms.cage, scale=scale)
+    check_inside(mesh, cage)
+    info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
+            "cage": {k: v for k, v in cage_info.items() if isinstance(v, (int, float, str, list, tuple))}}
+    return Model(cage, scale, info, mesh)
 
 
 def _seams_for(spec, vol):
@@ -157,9 +174,14 @@ def prepare(spec, timer=None, progress=None):
         joints = plan_joints(tiling, fmap, spec.joints)
     from .spline.measure import bbox
 
-    lo, hi = bbox(vol)
+    if model.mesh is not None:
+        lo, hi = model.mesh.bounds
+        model_volume = float(model.mesh.volume)
+    else:
+        lo, hi = bbox(vol)
+        model_volume = float(volume_of(vol))
     model_report = {
-        "volume_mm3": float(volume_of(vol)),
+        "volume_mm3": model_volume,
         "bbox_mm": [np.round(lo, 4).tolist(), np.round(hi, 4).tolist()],
         "handedness": model_check["handedness"],
         "degenerate": bool(model_check.get("degenerate", False)),
@@ -216,10 +238,18 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     _check_plate(spec, stages["tiling"], stages["fmap"])
     jobs = jobs or os.cpu_count() or 1
     joints = stages["joints"]
-    gaps = sum(joint_gap_volume(j) for j in joints)
-    expected = stages["model_report"]["volume_mm3"] - gaps
     tolerance = spec.output.tolerance
-    for attempt in range(3):
+    mesh_report = None
+    if stages["model"].mesh is not None:
+        pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
+        gaps = sum(joint_gap_volume(j) for j in joints)
+        expected = stages["model_report"]["volume_mm3"] - gaps
+        with timer("check", progress):
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected)
+    else:
+        gaps = sum(joint_gap_volume(j) for j in joints)
+        expected = stages["model_report"]["volume_mm3"] - gaps
+    for attempt in range(3 if mesh_report is None else 0):
         with timer("compose", progress):
             pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs, progress=progress.piece)
         with timer("check", progress):
@@ -266,12 +296,56 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "assembly_order": [p.id for p in pieces],
         "timings_s": timer.timings,
     }
+    if mesh_report is not None:
+        report["mesh"] = mesh_report
     with timer("export", progress):
         report["timings_s"] = timer.timings
         write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras)
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
+
+
+def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
+    """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints kept inside
+    the mesh, then pins and holes. -> (pieces, kept joints, report dict)"""
+    from .compose import Piece, compose
+    from .geometry import boolean, from_trimesh, to_trimesh
+    from .joint import hole_solid, pieces_joints, pin_solid
+    from .meshcut import intersect_pieces, keep_joints_inside, merge_fragments
+
+    tiling = stages["tiling"]
+    with timer("compose", progress):
+        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
+        solid = from_trimesh(stages["model"].mesh, "mesh model")
+        cut = intersect_pieces({p.id: from_trimesh(p.mesh, p.id) for p in bodies}, solid)
+        cut, merges = merge_fragments(cut)
+    cells = {p.id: p.cell for p in bodies}
+    present = set(cut)
+    joints = [j for j in joints if _pid(j.pin_cell) in present and _pid(j.hole_cell) in present]
+    with timer("joint", progress):
+        joints, moved = keep_joints_inside(joints, solid)
+    pieces = []
+    with timer("compose", progress):
+        for pid in sorted(cut, key=lambda k: cells[k]):
+            body = cut[pid]
+            body_volume = float(body.volume())
+            for j, role in pieces_joints(joints, cells[pid]):
+                if role == "pin":
+                    body = boolean(body, pin_solid(j), "union", pid)
+                else:
+                    body = boolean(body, hole_solid(j, cells[pid]), "difference", pid)
+            mesh = to_trimesh(body)
+            pieces.append(Piece(pid, cells[pid], mesh, float(mesh.volume), body_volume, int(len(mesh.faces))))
+    dropped = sorted(set(cells) - present)
+    report = {"cells_without_piece": dropped, "merged": merges, "joints_moved_or_dropped": moved,
+              "joints_moved": sum(1 for r in moved if r.get("action") == "moved"),
+              "joints_dropped": sum(1 for r in moved if r.get("action") == "dropped")}
+    return pieces, joints, report
+
+
+def _pid(index):
+    return "p" + "-".join(str(i) for i in index)
 
 
 def _layout(spec, pieces, dowels, joints, colors):

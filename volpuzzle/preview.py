@@ -37,7 +37,7 @@ def _triangles(parts, offsets):
     return np.concatenate(tris), np.concatenate(cols)
 
 
-def render_preview(path, meshes, colors, size=(1600, 800), explode=0.35, title=None):
+def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=None):
     """Write a PNG: left the assembled puzzle, right exploded. meshes: list of Trimesh in mm; colors (n, 3) uint8."""
     import matplotlib
 
