@@ -37,7 +37,7 @@ _STEM_EM = 0.178  # stem width of DejaVu Sans Bold in em, measured on '1' (0.283
 _FLAT_EM = 0.002  # largest distance between a glyph curve and its polygon, em
 _SAMPLE_MM = 0.4  # spacing of surface samples under the text and of the face's boundary samples
 _REFINE_MM = 0.8  # longest edge of the prism before it is bent onto the surface
-_CENTRES = np.linspace(0.1, 0.9, 9)  # candidate centres, fractions across the face
+_CENTRES = np.linspace(0.05, 0.95, 19)  # candidate centres, fractions across the face
 
 
 def _m3():
@@ -226,51 +226,50 @@ def _boundary(cell, fmap, a, side):
     return fmap.evaluate(np.concatenate(uvw))
 
 
+def _limit(d, right, up, pad, aspect):
+    """Largest text height (k,) for which a box of half-extents (aspect/2, 1/2) * H about each centre stays `pad`
+    clear of every point: H <= max((|qx| - pad) / (aspect/2), (|qy| - pad) / (1/2)). d (k, m, 3) points less centres."""
+    qx = np.abs(np.einsum("kmi,ki->km", d, right))
+    qy = np.abs(np.einsum("kmi,ki->km", d, up))
+    return np.maximum((qx - pad) / (0.5 * aspect), (qy - pad) / 0.5)
+
+
 def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order):
     """Every (centre, direction) on one face -> list of (sort key, site arguments)."""
     b, c = _cyclic(a)
     ink_w, ink_h = _ink(text)
     aspect = ink_w / ink_h
     hmin = min_height_mm(text)
-    fb, fc = np.meshgrid(_CENTRES, _CENTRES, indexing="ij")
-    uvw = _face_uvw(cell, a, side, fb.ravel(), fc.ravel())
+    fb, fc = (x.ravel() for x in np.meshgrid(_CENTRES, _CENTRES, indexing="ij"))
+    uvw = _face_uvw(cell, a, side, fb, fc)
     x0, jac = fmap.evaluate_with_jacobian(uvw)
     normals = _outward(jac, a, side, int(getattr(fmap, "orientation", 1) or 1))
+    good = np.any(normals != 0, axis=1)
     edge = _boundary(cell, fmap, a, side)
+    d_edge = edge[None] - x0[:, None]
+    d_axes = axes_pts[None] - x0[:, None]
+    off_centre = np.round(np.hypot(fb - 0.5, fc - 0.5), 6)
     out = []
-    for i in range(len(uvw)):
-        n = normals[i]
-        if not np.any(n):
-            continue
-        for k, tangent in enumerate((jac[i][:, b], jac[i][:, c])):
-            up = tangent - np.dot(tangent, n) * n
-            size = np.linalg.norm(up)
-            if size <= 1e-12:
-                continue
-            up = up / size
-            right = np.cross(up, n)
-            # the face's outline and the joint axes seen along the normal; a box around the centre of half-extents
-            # (aspect/2, 1/2) * H stays `m` clear of a point q iff H <= max((|qx| - m) / (aspect/2), (|qy| - m) / (1/2))
-            d = edge - x0[i]
-            qx, qy = np.abs(d @ right), np.abs(d @ up)
-            limit = np.maximum((qx - MARGIN_MM) / (0.5 * aspect), (qy - MARGIN_MM) / 0.5)
-            height = min(float(limit.min()), MAX_HEIGHT_MM)
-            if len(axes_pts):
-                d = axes_pts - x0[i]
-                z = d @ n
-                near = (z > -(depth + 2.0 + axes_r)) & (z < TOP_MM + 2.0 + axes_r)
-                if near.any():
-                    qx, qy, r = np.abs(d[near] @ right), np.abs(d[near] @ up), axes_r[near]
-                    limit = np.maximum((qx - r) / (0.5 * aspect), (qy - r) / 0.5)
-                    height = min(height, float(limit.min()))
-            if height < hmin:
-                continue
+    for k, tangent in enumerate((jac[:, :, b], jac[:, :, c])):
+        up = tangent - np.einsum("ki,ki->k", tangent, normals)[:, None] * normals
+        size = np.linalg.norm(up, axis=1)
+        ok = good & (size > 1e-12)
+        up = up / np.maximum(size, 1e-300)[:, None]
+        right = np.cross(up, normals)
+        # the face's outline and the joint axes, seen along the normal
+        height = np.minimum(_limit(d_edge, right, up, MARGIN_MM, aspect).min(axis=1), MAX_HEIGHT_MM)
+        if len(axes_pts):
+            z = np.einsum("kmi,ki->km", d_axes, normals)
+            lim = _limit(d_axes, right, up, axes_r[None], aspect)
+            near = (z > -(depth + 2.0 + axes_r[None])) & (z < TOP_MM + 2.0 + axes_r[None])
+            height = np.minimum(height, np.where(near, lim, np.inf).min(axis=1))
+        for i in np.flatnonzero(ok & (height >= hmin)):
+            u = up[i]
             # upright text where the face allows it: up turned to the global +z, so labels read alike
-            if up[2] < -1e-9 or (abs(up[2]) <= 1e-9 and (up[1] < -1e-9 or (abs(up[1]) <= 1e-9 and up[0] < 0))):
-                up = -up
-            off_centre = float(np.hypot(fb.ravel()[i] - 0.5, fc.ravel()[i] - 0.5))
-            key = (has_joint, -round(height, 3), round(off_centre, 6), order, k, i)
-            out.append((key, (x0[i], n, up, height, uvw[i])))
+            if u[2] < -1e-9 or (abs(u[2]) <= 1e-9 and (u[1] < -1e-9 or (abs(u[1]) <= 1e-9 and u[0] < 0))):
+                u = -u
+            key = (has_joint, -round(float(height[i]), 3), off_centre[i], order, k, i)
+            out.append((key, (x0[i], normals[i], u, float(height[i]), uvw[i])))
     return out
 
 
