@@ -5,6 +5,7 @@ Run: python3 scripts/bench_spline.py [--rational]
 """
 
 import argparse
+import os
 import statistics
 import time
 
@@ -41,6 +42,7 @@ def main():
     vol.evaluate(uvw[:10])
     vol.evaluate_with_derivatives(uvw[:10])
     print(f"first calls (load or compile of the kernels): {time.perf_counter() - t:.2f} s")
+    print(f"load average: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (figures below are wall clock)")
     kind = "rational" if args.rational else "polynomial"
     n = args.points
     b, m = best(lambda: vol.evaluate(uvw))
@@ -49,6 +51,15 @@ def main():
     print(f"scattered value + 3 partials:                   {n / b / 1e6:.2f} M pts/s (median {n / m / 1e6:.2f})")
     b, m = best(lambda: vol._project(*vol._numpy_sums(uvw[:100_000], True)), repeat=2)
     print(f"  (numpy reference path, value + partials:       {1e5 / b / 1e6:.2f} M pts/s)")
+    from volpuzzle.spline import _fast
+    out = np.empty((n, 3))
+    der = np.empty((n, 3, 3))
+    for want, label in ((False, "value-only"), (True, "value + partials")):
+        c = time.process_time()
+        _fast.eval_serial(uvw, *vol._tables[0], *vol._tables[1], *vol._tables[2], *vol.degrees, vol._knet,
+                          np.empty((n, vol._knet.shape[3])), np.empty((n, vol._knet.shape[3], 3)), want,
+                          np.empty(0) if vol._knet.shape[3] == 3 else np.empty((0, 0)))
+        print(f"  serial kernel, CPU time, {label}: {n / (time.process_time() - c) / 1e6:.2f} M pts/s per core")
     g = np.linspace(0, 1, 100)
     b, m = best(lambda: vol.evaluate_grid(g, g, g))
     print(f"tensor grid 100^3 value-only:                   {1e6 / b / 1e6:.2f} M pts/s")

@@ -3,6 +3,7 @@
 Control points are Cartesian, shape (n_u, n_v, n_w, 3); weights, when present, (n_u, n_v, n_w).
 """
 
+import os
 import threading
 from dataclasses import dataclass
 from functools import cached_property
@@ -16,6 +17,7 @@ from . import knots as knots_mod
 _PARALLEL_MIN = 4096  # points; below this the serial kernel is faster than waking threads
 _TINY = 256  # points; below this, and before the compiled kernels are loaded, use numpy
 _LOADED = set()
+_PARALLEL_PID = {}
 _MODE = {3: np.empty(0), 4: np.empty((0, 0))}
 _FAST = []
 
@@ -177,6 +179,11 @@ class Volume:
         return self._net if fast is None else fast.padded_net(self._net, self.degrees)
 
     @cached_property
+    def _tables(self):
+        fast = _fast_module()
+        return tuple(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees))
+
+    @cached_property
     def _last_spans(self):
         return tuple(basis.last_span(k, p) for k, p in zip(self.knots, self.degrees))
 
@@ -192,6 +199,10 @@ class Volume:
         d = self._net.shape[3]
         # Small batches: threads cost more than they save; off the main thread: stay re-entrant.
         parallel = n >= _PARALLEL_MIN and threading.current_thread() is threading.main_thread()
+        # GNU OpenMP (numba's threading layer here) is not fork-safe: a forked child of a process that has
+        # run the parallel kernel stays on the serial one.
+        if parallel:
+            parallel = _PARALLEL_PID.setdefault("pid", os.getpid()) == os.getpid()
         kind = "parallel" if parallel else "serial"
         # A tiny first call should not pay for loading compiled code (seconds): numpy until it is loaded.
         if n < _TINY and kind not in _LOADED:
@@ -204,8 +215,8 @@ class Volume:
         out = np.empty((n, d))
         der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
         fn = fast.eval_parallel if parallel else fast.eval_serial
-        (ku, kv, kw), (pu, pv, pw), (lu, lv, lw) = self.knots, self.degrees, self._last_spans
-        fn(uvw, ku, kv, kw, pu, pv, pw, lu, lv, lw, self._knet, out, der, want_der, _MODE[d])
+        tu, tv, tw = self._tables
+        fn(uvw, *tu, *tv, *tw, *self.degrees, self._knet, out, der, want_der, _MODE[d])
         return out, (der if want_der else None)
 
     def _numpy_sums(self, uvw, want_der):
