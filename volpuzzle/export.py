@@ -180,6 +180,15 @@ def render_report_md(report: dict) -> str:
         lines += ["", "## Plates", "", "| plate | pieces |", "|---|---|"]
         for pl in plates:
             lines.append(f"| [{pl.get('file')}]({pl.get('file')}) | {', '.join(pl.get('pieces', []))} |")
+    mesh = report.get("mesh") or {}
+    if mesh:
+        lines += ["", "## Mesh in a cage", "",
+                  f"Joints moved to stay inside the mesh: {mesh.get('joints_moved', 0)}; dropped: "
+                  f"{mesh.get('joints_dropped', 0)}. Fragments merged into a neighbour: {len(mesh.get('merged', []))}. "
+                  f"Cells that miss the mesh: {len(mesh.get('cells_without_piece', []))}."]
+    assembly = report.get("assembly") or {}
+    if assembly.get("words"):
+        lines += ["", "## Assembly", ""] + list(assembly["words"])
     if checks:
         verdict = "passed" if checks.get("passed") else "FAILED"
         lines += ["", f"## Checks: {verdict}", "", "| check | value |", "|---|---|"]

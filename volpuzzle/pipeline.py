@@ -170,8 +170,16 @@ def prepare(spec, timer=None, progress=None):
     orientation = -1 if model_check["handedness"] == "left" else 1
     fmap = Map(vol, warp, orientation)
     _check_grid_vs_tolerance(spec, tiling, fmap)
+    plan = None
     with timer("joint", progress):
         joints = plan_joints(tiling, fmap, spec.joints)
+        if joints:
+            from .assembly import plan_assembly, reorient_joints, select_joints
+
+            # With straight pins and bumpy cut faces a jointed face can only part along its pins, so the joints
+            # follow a plan of splits (blocks that slide apart) and every pin of a split shares its direction.
+            plan = plan_assembly(tiling, fmap)
+            joints = reorient_joints(select_joints(joints, tiling, plan), tiling, fmap, plan)
     from .spline.measure import bbox
 
     if model.mesh is not None:
@@ -189,8 +197,8 @@ def prepare(spec, timer=None, progress=None):
         "periodic_axes_found": [AXES[a] for a in sorted(all_seams)],
         **model.info,
     }
-    return {"model": model, "tiling": tiling, "fmap": fmap, "joints": joints, "model_report": model_report,
-            "randomize_report": rand_report}
+    return {"model": model, "tiling": tiling, "fmap": fmap, "joints": joints, "plan": plan,
+            "model_report": model_report, "randomize_report": rand_report}
 
 
 def joint_gap_volume(joint):
@@ -274,6 +282,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         from .joint import dowel_solid
 
         dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+    assembly = _assembly(stages["plan"], pieces, joints, timer, progress)
     colors = piece_colors(len(pieces))
     with timer("layout", progress):
         placements, plates, extras = _layout(spec, pieces, dowels, joints, colors)
@@ -293,7 +302,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "joints": [j.to_report() for j in joints],
         "checks": checks,
         "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
-        "assembly_order": [p.id for p in pieces],
+        "assembly_order": assembly.pop("assembly_order"),
+        "assembly": assembly,
         "timings_s": timer.timings,
     }
     if mesh_report is not None:
@@ -342,6 +352,21 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
               "joints_moved": sum(1 for r in moved if r.get("action") == "moved"),
               "joints_dropped": sum(1 for r in moved if r.get("action") == "dropped")}
     return pieces, joints, report
+
+
+def _assembly(plan, pieces, joints, timer, progress):
+    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck"""
+    from .assembly import steps_in_words, verify_disassembly
+
+    if plan is None:
+        return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
+    with timer("assembly", progress):
+        res = verify_disassembly(pieces, joints, plan)
+    if res["welded"]:
+        print(f"warning: the puzzle is welded: {', '.join(res['stuck'])} cannot be taken out along their pins",
+              file=sys.stderr)
+    return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
+            "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
 def _pid(index):
