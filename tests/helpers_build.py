@@ -17,8 +17,11 @@ def example_spec(name, tmp_path, tolerance=1.0, grid=None, **overrides):
     """specs/NAME.yaml made coarse: absolute model paths, the output folder in tmp_path."""
     spec = yaml.safe_load((REPO / "specs" / f"{name}.yaml").read_text())
     model = spec["model"]
-    if "nurbs" in model:
-        model["nurbs"] = str((REPO / "specs" / model["nurbs"]).resolve())
+    for key in ("nurbs", "mesh"):
+        if key in model:
+            model[key] = str((REPO / "specs" / model[key]).resolve())
+    if isinstance(model.get("cage"), dict) and "nurbs" in model["cage"]:
+        model["cage"]["nurbs"] = str((REPO / "specs" / model["cage"]["nurbs"]).resolve())
     spec.setdefault("output", {})["tolerance"] = tolerance
     spec["output"]["directory"] = str(tmp_path / "out" / name)
     if grid is not None:
