@@ -191,6 +191,14 @@ def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw,
         j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, dNv, B, True)]
         k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, dNw, B, True)]
         if small:
+            n0 = Nw[0]
+            n1 = Nw[1]
+            n2 = Nw[2]
+            n3 = Nw[3]
+            d0 = dNw[0]
+            d1 = dNw[1]
+            d2 = dNw[2]
+            d3 = dNw[3]
             ax0 = ay0 = az0 = ah0 = 0.0
             axu = ayu = azu = ahu = 0.0
             axv = ayv = azv = ahv = 0.0
@@ -200,24 +208,18 @@ def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw,
                 bxv = byv = bzv = bhv = 0.0
                 bxw = byw = bzw = bhw = 0.0
                 for j in range(4):
-                    cx0 = cy0 = cz0 = ch0 = 0.0
-                    cxw = cyw = czw = chw = 0.0
-                    for k in range(4):
-                        nk = Nw[k]
-                        dk = dNw[k]
-                        x = cp[i0 + i, j0 + j, k0 + k, 0]
-                        y = cp[i0 + i, j0 + j, k0 + k, 1]
-                        z = cp[i0 + i, j0 + j, k0 + k, 2]
-                        cx0 += nk * x
-                        cy0 += nk * y
-                        cz0 += nk * z
-                        cxw += dk * x
-                        cyw += dk * y
-                        czw += dk * z
-                        if rat:
-                            h = cp[i0 + i, j0 + j, k0 + k, 3]
-                            ch0 += nk * h
-                            chw += dk * h
+                    c = cp[i0 + i, j0 + j]
+                    cx0 = n0 * c[k0, 0] + n1 * c[k0 + 1, 0] + n2 * c[k0 + 2, 0] + n3 * c[k0 + 3, 0]
+                    cy0 = n0 * c[k0, 1] + n1 * c[k0 + 1, 1] + n2 * c[k0 + 2, 1] + n3 * c[k0 + 3, 1]
+                    cz0 = n0 * c[k0, 2] + n1 * c[k0 + 1, 2] + n2 * c[k0 + 2, 2] + n3 * c[k0 + 3, 2]
+                    cxw = d0 * c[k0, 0] + d1 * c[k0 + 1, 0] + d2 * c[k0 + 2, 0] + d3 * c[k0 + 3, 0]
+                    cyw = d0 * c[k0, 1] + d1 * c[k0 + 1, 1] + d2 * c[k0 + 2, 1] + d3 * c[k0 + 3, 1]
+                    czw = d0 * c[k0, 2] + d1 * c[k0 + 1, 2] + d2 * c[k0 + 2, 2] + d3 * c[k0 + 3, 2]
+                    ch0 = 0.0
+                    chw = 0.0
+                    if rat:
+                        ch0 = n0 * c[k0, 3] + n1 * c[k0 + 1, 3] + n2 * c[k0 + 2, 3] + n3 * c[k0 + 3, 3]
+                        chw = d0 * c[k0, 3] + d1 * c[k0 + 1, 3] + d2 * c[k0 + 2, 3] + d3 * c[k0 + 3, 3]
                     nj = Nv[j]
                     dj = dNv[j]
                     bx0 += nj * cx0
