@@ -215,6 +215,65 @@ def _load_mesh(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
+def _cylinder(center, direction, radius, start, stop, segments=48):
+    """manifold3d cylinder of `radius` along the unit `direction`, from center+start*d to center+stop*d."""
+    import manifold3d
+
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d)
+    rot = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
+    rot[:3, 3] = np.asarray(center, float) + start * d
+    cyl = manifold3d.Manifold.cylinder(stop - start, radius, radius, segments).transform(rot[:3, :])
+    if cyl.status() != manifold3d.Error.NoError or cyl.is_empty():
+        raise GeometryError(f"joint check: cannot build a test cylinder of radius {radius:g} mm ({cyl.status()})")
+    return cyl
+
+
+def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> list:
+    """Every pin inside its hole with its clearance, on the real meshes -> list of failure sentences.
+
+    meshes: {piece id: closed trimesh in mm}; joints: report.json joint entries. A pin's core (90% of its radius and
+    length) must lie inside the pin piece, and the pin grown by half its clearance must not touch the hole piece
+    (both within `share` of the tested volume, which absorbs the polygonal circles)."""
+    failures = []
+    solids = {}
+
+    def solid(pid):
+        if pid not in solids:
+            m = _manifold(meshes[pid], pid)
+            solids[pid] = m if not isinstance(m, str) else None
+        return solids[pid]
+
+    for j in joints:
+        pin, hole = j.get("pin_piece"), j.get("hole_piece")
+        if pin not in meshes or hole not in meshes:
+            continue
+        c, d = j["center_mm"], j["direction"]
+        r, length, cl = float(j["radius_mm"]), float(j["length_mm"]), float(j.get("clearance_mm", 0.0))
+        a, b = solid(pin), solid(hole)
+        if a is None or b is None:
+            continue
+        name = f"joint {pin} -> {hole}"
+        if j.get("style", "pin") == "dowel":
+            room = _cylinder(c, d, r + 0.5 * cl, -0.9 * length, 0.9 * length)
+            for piece, m in ((pin, a), (hole, b)):
+                hit = (room ^ m).volume()
+                if hit > share * room.volume():
+                    failures.append(f"{name}: the dowel hole in {piece} is blocked ({hit:.3g} mm^3 of material "
+                                    f"within radius {r + 0.5 * cl:.2f} mm)")
+            continue
+        core = _cylinder(c, d, 0.9 * r, 0.1 * length, 0.9 * length)
+        missing = (core - a).volume()
+        if missing > share * core.volume():
+            failures.append(f"{name}: the pin of {pin} is missing ({missing:.3g} mm^3 of its core is not there)")
+        room = _cylinder(c, d, r + 0.5 * cl, 0.05 * length, length)
+        hit = (room ^ b).volume()
+        if hit > share * room.volume():
+            failures.append(f"{name}: the pin does not fit its hole in {hole} with clearance {cl:g} mm "
+                            f"({hit:.3g} mm^3 of {hole} within radius {r + 0.5 * cl:.2f} mm of the pin axis)")
+    return failures
+
+
 def check_directory(directory, raise_on_failure: bool = True) -> dict:
     """`volpuzzle check DIR`: re-run the checks on a built puzzle from its files alone.
 
@@ -253,7 +312,10 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     checks = check_pieces(pieces, float(expected),
                           volume_tolerance=float(old.get("volume_tolerance", 0.005)))
     checks["missing_files"] = missing
-    checks["failures"] = [f"missing piece file {m}" for m in missing] + failures + checks["failures"]
+    joint_failures = check_joints(dict(pieces), report.get("joints") or [])
+    checks["joints_checked"] = len(report.get("joints") or [])
+    checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
+                          + joint_failures)
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "

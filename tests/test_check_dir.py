@@ -1,0 +1,80 @@
+"""`volpuzzle check DIR` on a real build, and on copies of it that were tampered with."""
+
+import json
+import shutil
+
+import pytest
+import trimesh
+from click.testing import CliRunner
+
+from helpers_build import write_spec
+import volpuzzle
+from volpuzzle.check import check_directory
+from volpuzzle.cli import cli
+from volpuzzle.errors import VolpuzzleError
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("build")
+    spec = write_spec(tmp, {"name": "chk", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 2],
+                            "output": {"directory": str(tmp / "out"), "tolerance": 0.3}})
+    volpuzzle.build(spec, jobs=1)
+    return tmp / "out"
+
+
+@pytest.fixture
+def copy(built, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(built, dst)
+    return dst
+
+
+def fails(directory, *words):
+    result = CliRunner().invoke(cli, ["check", str(directory)])
+    assert result.exit_code != 0
+    assert "Traceback" not in result.output
+    for w in words:
+        assert w in result.output, result.output
+    return result.output
+
+
+def test_a_fresh_build_passes(built):
+    checks = check_directory(built)
+    assert checks["passed"] and checks["joints_checked"] >= 1
+    assert CliRunner().invoke(cli, ["check", str(built)]).exit_code == 0
+
+
+def test_piece_moved_into_its_neighbour(copy):
+    report = json.loads((copy / "report.json").read_text())
+    j = report["joints"][0]
+    path = copy / "pieces" / f"{j['hole_piece']}.stl"
+    mesh = trimesh.load(path)
+    mesh.apply_translation([-3.0 * x for x in j["direction"]])
+    mesh.export(path)
+    fails(copy, j["hole_piece"])
+
+
+def test_deleted_piece_file(copy):
+    victim = sorted((copy / "pieces").iterdir())[0]
+    victim.unlink()
+    fails(copy, "missing", victim.name)
+
+
+def test_truncated_piece_file(copy):
+    victim = sorted((copy / "pieces").iterdir())[-1]
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    fails(copy, victim.stem)
+
+
+def test_pin_without_room_in_its_hole(copy):
+    report = json.loads((copy / "report.json").read_text())
+    report["joints"][0]["radius_mm"] *= 1.3  # the pin the report promises no longer fits the hole that was cut
+    (copy / "report.json").write_text(json.dumps(report))
+    fails(copy, "does not fit its hole")
+
+
+def test_not_a_build(tmp_path):
+    with pytest.raises(VolpuzzleError, match="no report.json"):
+        check_directory(tmp_path)
+    fails(tmp_path, "no report.json")
