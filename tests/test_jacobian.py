@@ -134,3 +134,13 @@ def test_zero_on_an_interior_face_is_not_degenerate():
     cert = certify_positive(vol)
     assert cert.status == "disproved"
     assert abs(cert.where_uvw[0] - 0.5) < 0.05
+
+
+def test_rational_quarter_shell_is_left_handed_and_its_bounds_hold():
+    from test_measure import quarter_cylinder_shell
+    vol = quarter_cylinder_shell()
+    o = orientation(vol)
+    assert o.handedness == "left" and o.certificate.status == "proved"
+    uvw = np.random.default_rng(14).random((5000, 3))
+    det = np.linalg.det(vol.derivatives(uvw))
+    assert o.lower <= det.min() and det.max() <= o.upper < 0

@@ -160,3 +160,24 @@ def test_transformed_and_scaled():
     uvw = rng.uniform(-2, 3, (50, 3))
     np.testing.assert_allclose(vol.transformed(m, o).evaluate(uvw), vol.evaluate(uvw) @ m.T + o, atol=1e-12)
     np.testing.assert_allclose(vol.scaled(2.5).evaluate(uvw), 2.5 * vol.evaluate(uvw), atol=1e-12)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), rational=st.booleans(),
+       lo=st.lists(st.floats(0.0, 0.45), min_size=3, max_size=3),
+       hi=st.lists(st.floats(0.55, 1.0), min_size=3, max_size=3))
+def test_subvolume_and_extraction_keep_the_volume(seed, rational, lo, hi):
+    rng = np.random.default_rng(seed)
+    degrees = tuple(int(d) for d in rng.integers(1, 4, 3))
+    vol = random_volume(rng, degrees, tuple(d + 3 for d in degrees), rational)
+    dom = vol.domain_array
+    box = dom[0] + np.array([lo, hi]) * (dom[1] - dom[0])
+    sub = vol.subvolume(box)
+    uvw = box[0] + rng.random((100, 3)) * (box[1] - box[0])
+    np.testing.assert_allclose(sub.evaluate(uvw), vol.evaluate(uvw), atol=1e-10)
+    breaks, hp = sub.bezier_elements()
+    for a in range(3):
+        assert breaks[a][0] == box[0, a] and breaks[a][-1] == box[1, a]
+    # every element's corner Bezier points interpolate the volume
+    corner = hp[0, 0, 0, 0, 0, 0]
+    np.testing.assert_allclose(corner[:3] / corner[3], vol.evaluate(box[:1])[0], atol=1e-10)
