@@ -245,6 +245,35 @@ def test_curved_face_keeps_the_depth_under_all_the_text():
     assert under.sum() > 50 and dist.min() >= L.DEPTH_MM - 5e-3
 
 
+def _ring(radius=40.0, half=11.0, n_w=12):
+    """A square section swept round a full circle, cubic along w: its w-faces meet at a periodic seam."""
+    ang = 2 * np.pi * np.arange(n_w) / (n_w - 1)
+    radial = np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    radial[-1] = radial[0]
+    x = np.array([-half, half])
+    cp = (radius * radial[None, None] + x[:, None, None, None] * np.array([0.0, 0.0, 1.0])
+          + x[None, :, None, None] * radial[None, None])  # u up, v out, w round: right-handed
+    return Volume((1, 1, 3), (_clamped(2, 1), _clamped(2, 1), _clamped(n_w, 3)), cp)
+
+
+def test_label_across_a_periodic_seam():
+    from volpuzzle.spline.seams import find_seams
+
+    vol = _ring()
+    fmap = Map(vol)
+    tiling = tile(vol, (1, 1, 3), periodic=(2,), seams=find_seams(vol))
+    joints = [j for j in J.plan_joints(tiling, fmap) if not j.across_seam]  # only the seam's face is free
+    cell = tiling.cell((0, 0, 0))
+    site = L.choose_label_site(cell, tiling, fmap, joints)
+    assert site is not None and site.face == (2, -1) and not site.has_joint
+    x0, jac = fmap.evaluate_with_jacobian(np.array([[0.5, 0.5, 0.0]]))
+    assert np.dot(site.normal, jac[0][:, 2]) < 0  # out of the cell's min-w face, against growing w
+    assert abs(np.dot(site.center - x0[0], site.normal)) < 1e-6  # on the seam's plane
+    sampling = C.sample_parameters(tiling, fmap, 0.5)
+    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, joints).mesh, cell.id)
+    _check_engraving(body, L.engrave(body, site, what=cell.id), site, joints, cell)
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # failures
 
