@@ -98,7 +98,7 @@ def _box_model():
 
 @lru_cache(maxsize=None)
 def _box_puzzle(v_joint=True):
-    """Piece p0-0-0 of a 2 x 2 x 1 box puzzle; without v_joint its v-face carries no joint (as assembly.py may decide)."""
+    """Piece p0-0-0 of a 2 x 2 x 1 box puzzle; without v_joint its v-face has no joint (as assembly.py may decide)."""
     vol = _box_model()
     fmap = Map(vol)
     tiling = tile(vol, (2, 2, 1))
@@ -272,6 +272,18 @@ def test_label_across_a_periodic_seam():
     sampling = C.sample_parameters(tiling, fmap, 0.5)
     body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, joints).mesh, cell.id)
     _check_engraving(body, L.engrave(body, site, what=cell.id), site, joints, cell)
+
+
+def test_left_handed_model_still_faces_out():
+    vol = _box_model()
+    mirrored = Volume(vol.degrees, vol.knots, vol.control_points * np.array([-1.0, 1.0, 1.0]))
+    fmap = Map(mirrored, orientation=-1)
+    tiling = tile(mirrored, (2, 2, 1))
+    for cell in tiling.cells.values():
+        site = L.choose_label_site(cell, tiling, fmap, [])
+        inside = fmap.evaluate(cell.center[None])[0]
+        assert np.dot(site.center - inside, site.normal) > 5.0
+        assert np.isclose(np.linalg.det(site.frame()[:, :3]), 1.0)  # text reads from outside, never mirrored
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -201,7 +201,7 @@ def _face_uvw(cell, a, side, fb, fc):
 
 
 def _outward(jac, a, side, orientation):
-    """Outward unit normals (n, 3) of the face along axis a, side +-1, from Jacobians (n, 3, 3); zero where collapsed."""
+    """Outward unit normals (n, 3) of the face along axis a, side +-1, from Jacobians (n, 3, 3); 0 where collapsed."""
     b, c = _cyclic(a)
     nrm = np.cross(jac[:, :, b], jac[:, :, c])
     det = np.einsum("ni,ni->n", jac[:, :, a], nrm)
