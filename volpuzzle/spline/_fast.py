@@ -10,7 +10,8 @@ LLVM unrolls them (~1.5x). Points are processed in blocks under `prange`; scratc
 `cp` is (n_u, n_v, n_w (+pad), d): d = 3 for polynomial volumes, 4 (homogeneous) for rational ones; the
 caller divides by the last coordinate, and passes `mode`: an empty 1-d array for d = 3, 2-d for d = 4 (its
 ndim is a compile-time constant, so each case gets its own specialisation: ~25% faster than a run-time
-test). Parameters are clamped to the domain; NaN propagates (it fails every comparison, so the search
+test). The serial kernel releases the GIL (nogil), so callers may run it from several threads.
+Parameters are clamped to the domain; NaN propagates (it fails every comparison, so the search
 stays in range).
 """
 
@@ -45,7 +46,7 @@ def padded_net(net, degrees):
     return np.ascontiguousarray(np.pad(net, ((0, 0), (0, 3 - pv), (0, 3 - pw), (0, 0))))
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, nogil=True)
 def _basis(br, invh, ext, p, t, N, dN, B, want_der):
     """Element index of t (clamped) and the p+1 basis values (and derivatives) in N (dN)."""
     E = br.shape[0] - 1
@@ -93,7 +94,7 @@ def _basis(br, invh, ext, p, t, N, dN, B, want_der):
     return lo
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, nogil=True)
 def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, mode):
     # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
     rat = mode.ndim == 2  # a compile-time constant
@@ -172,7 +173,7 @@ def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, 
             out[idx, 3] = ah
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, nogil=True)
 def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
                        mode):
     # Same contraction as _block_values, carrying the value and the three partials in scalars
@@ -345,7 +346,7 @@ def eval_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, p
                           cp, out, mode)
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, nogil=True)
 def eval_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der, mode):
     if want_der:
         _block_derivatives(uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw,
