@@ -157,6 +157,12 @@ class LabelSite:
         m[:, 0], m[:, 1], m[:, 2], m[:, 3] = self.right, self.up, self.normal, self.center
         return m
 
+    def to_report(self):
+        """The label as report.json can list it: face like 'v+' (the cell's max v face), sizes in mm."""
+        return {"text": self.text, "face": "uvw"[self.face[0]] + ("+" if self.face[1] > 0 else "-"),
+                "height_mm": round(float(self.height_mm), 3), "center_mm": [round(float(x), 4) for x in self.center],
+                "normal": [round(float(x), 6) for x in self.normal], "on_joint_face": bool(self.has_joint)}
+
 
 def _face_joints(face, joints):
     """Joints on a shared face (the same pair of cells, axis, and seam crossing)."""
@@ -392,7 +398,8 @@ def _measured_heights(body, site):
 
 
 def engrave(body, site, text=None, depth=DEPTH_MM, what=None):
-    """body (manifold3d.Manifold, mm) with `text` (default: the site's) cut `depth` mm into it at `site` -> Manifold.
+    """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
+    `depth` mm into it at `site` -> Manifold.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
     GeometryError naming `what` when the engine fails or the piece would not stay one solid."""
     m3 = _m3()
