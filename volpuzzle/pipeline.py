@@ -129,12 +129,14 @@ def _check_grid_vs_tolerance(spec, tiling, fmap):
             pts = fmap.evaluate(p0 + ts * (p1 - p0))
             lengths.append(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
         smallest = min(lengths)
-        if smallest < 20 * tol:
-            fit = max(1, int(spec.grid[a] * smallest / (20 * tol)))
+        # Below about ten tolerances the chords of a piece are as coarse as the piece itself.
+        if smallest < 10 * tol:
+            fit = int(spec.grid[a] * smallest / (10 * tol))
+            advice = (f"at most {fit} along {AXES[a]} or output.tolerance at most {smallest / 10:.3g} mm" if fit >= 1
+                      else f"output.tolerance at most {smallest / 10:.3g} mm")
             problems.append(
-                f"grid: {spec.grid[a]} pieces along {AXES[a]} make pieces {smallest:.3g} mm thin, too fine for "
-                f"output.tolerance {tol:g} mm (got {spec.grid[a]}, expected at most {fit} along {AXES[a]} or a smaller "
-                f"tolerance)")
+                f"grid: {spec.grid[a]} pieces along {AXES[a]} make pieces {smallest:.3g} mm thin, too thin for "
+                f"output.tolerance {tol:g} mm (got {spec.grid[a]}, expected {advice})")
     if problems:
         raise SpecError(problems, source=spec.source)
 
