@@ -194,20 +194,27 @@ def test_neighbours_do_not_overlap(name):
 @pytest.mark.parametrize("name", ["bent", "mirrored", "warped", "twisted", "cone"])
 def test_mapped_surface_within_tolerance(name):
     _, t, fmap, sampling, _ = _built(name)
-    grid = C._grid_for(sampling, fmap)
     rng = np.random.default_rng(11)
     worst = 0.0
     for index in sorted(t.cells):
-        own, _ = C._cell_boundary(t.cell(index), sampling, grid)
-        uvw = np.stack([sampling.params[a][own[..., a]] for a in range(3)], axis=-1)  # (tri, 3 corners, 3)
-        pick = rng.choice(len(uvw), size=min(400, len(uvw)), replace=False)
+        uvw, ids, tris, _ = C.cell_parameter_mesh(t.cell(index), sampling)
+        pick = rng.choice(len(tris), size=min(400, len(tris)), replace=False)
         lam = rng.dirichlet((1.0, 1.0, 1.0), size=len(pick))
-        corners = fmap.evaluate(uvw[pick].reshape(-1, 3)).reshape(-1, 3, 3)
-        lin = np.einsum("nk,nkd->nd", lam, corners)
-        true = fmap.evaluate(np.einsum("nk,nkd->nd", lam, uvw[pick]))
+        lin = np.einsum("nk,nkd->nd", lam, sampling.xyz[ids[tris[pick]]])
+        true = fmap.evaluate(np.einsum("nk,nkd->nd", lam, uvw[tris[pick]]))
         worst = max(worst, float(np.max(np.linalg.norm(true - lin, axis=1))))
     assert worst <= sampling.tolerance
     assert 0 < sampling.max_error_mm <= sampling.tolerance
+
+
+def test_parameter_mesh_is_the_closed_box():
+    _, t, _, sampling, _ = _built("twisted")
+    for index in sorted(t.cells):
+        cell = t.cell(index)
+        uvw, _, tris, bits = C.cell_parameter_mesh(cell, sampling)
+        box = G.manifold_from_mesh(uvw, tris, cell.id)
+        assert box.volume() == pytest.approx(np.prod(cell.box[1] - cell.box[0]), rel=1e-9)
+        assert np.all(bits != 0)
 
 
 def _exact(v):
@@ -218,33 +225,32 @@ def _exact(v):
 def test_shared_faces_have_identical_vertices_and_triangles(name):
     _, t, _, sampling, pieces = _built(name)
     by_cell = {p.cell: p for p in pieces}
+    lat = sampling.lattice
     seams_seen = 0
     for f in t.faces:
         a, b = by_cell[f.lower].mesh, by_cell[f.upper].mesh
-        common = _exact(a.vertices) & _exact(b.vertices)
-        cell = t.cell(f.lower)
-        sides = [int(sampling.break_index[k][cell.index[k] + 1] - sampling.break_index[k][cell.index[k]] + 1)
-                 for k in range(3) if k != f.axis]
-        assert len(common) == sides[0] * sides[1]  # bit-identical coordinates on both sides
+        g = list(f.lower)
+        g[f.axis] += 1
+        key, _ = lat.face(f.axis, g)
+        fm = sampling.faces[key]
+        face_pts = _exact(sampling.xyz[fm.ids])
+        # bit-identical coordinates on both sides
+        assert face_pts <= _exact(a.vertices) and face_pts <= _exact(b.vertices)
 
         def on_face(mesh):
             tri = mesh.vertices[mesh.faces]
-            keep = [all(tuple(x) in common for x in tr) for tr in tri]
+            keep = [all(tuple(x) in face_pts for x in tr) for tr in tri]
             return {frozenset(tuple(x) for x in tr) for tr in tri[keep]}
 
         ta, tb = on_face(a), on_face(b)
-        assert ta == tb and len(ta) == 2 * (sides[0] - 1) * (sides[1] - 1)
+        assert ta == tb and len(ta) == len(fm.tris)
         seams_seen += f.seam is not None
     assert seams_seen > 0 or not t.periodic
 
 
-def test_swap_seam_makes_the_samples_invariant():
-    _, _, _, s, _ = _built("twisted")
-    u, v = s.params[0], s.params[1]
-    assert np.allclose(u, v, atol=1e-12) and np.allclose(u, 1 - u[::-1], atol=1e-12)
-
-
-def test_pool_gives_the_same_pieces():
+def test_pool_gives_the_same_pieces(monkeypatch):
+    monkeypatch.setattr(C, "_POOL_MIN_PIECES", 0)
+    monkeypatch.setattr(C, "_POOL_MIN_TRIANGLES", 0)
     vol, t, fmap, sampling, pieces = _built("twisted")
     seen = []
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
@@ -256,10 +262,25 @@ def test_pool_gives_the_same_pieces():
     assert {pid for _, _, pid in seen} == {p.id for p in pieces}
 
 
+def test_small_puzzles_stay_serial(monkeypatch):
+    _, t, fmap, sampling, _ = _built("twisted")
+    monkeypatch.setattr(C.concurrent.futures, "ProcessPoolExecutor", None)  # would fail if a pool were made
+    assert len(C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling)) == len(t.cells)
+
+
+def test_sampling_is_deterministic():
+    vol, t, fmap, sampling, _ = _built("warped")
+    again = C.sample_parameters(t, fmap, sampling.tolerance)
+    assert np.array_equal(again.xyz, sampling.xyz)
+    assert all(np.array_equal(again.faces[k].tris, f.tris) for k, f in sampling.faces.items())
+
+
 def test_refinement_is_adaptive():
-    # the bend is along w only: straight u and v lines need few samples, the curved w direction many
-    _, _, _, s, _ = _built("bent")
-    assert len(s.params[2]) > 2 * max(len(s.params[0]), len(s.params[1]))
+    # the bend is along w only: the flat w faces keep few points, the faces bent along w get many
+    _, t, _, s, _ = _built("bent")
+    n_u = [len(fm.ids) for k, fm in s.faces.items() if k[0] == 2]  # w faces: straight, coarse
+    n_w = [len(fm.ids) for k, fm in s.faces.items() if k[0] == 0]  # u faces: bent along w
+    assert max(n_u) * 2 < np.mean(n_w) and max(n_u) < min(n_w)
 
 
 @settings(max_examples=5, deadline=None)
@@ -280,9 +301,9 @@ def test_tolerance_must_be_positive():
 
 
 def test_tolerance_too_fine(monkeypatch):
-    monkeypatch.setattr(C, "_MAX_SAMPLES", 8)
+    monkeypatch.setattr(C, "_MAX_EDGE_SAMPLES", 8)
     vol = _ring(sweep=120.0, n_w=6)
-    with pytest.raises(GeometryError, match="needs more than 8 samples along w"):
+    with pytest.raises(GeometryError, match="needs more than 8 samples along w on one cell edge"):
         C.sample_parameters(tile(vol, (1, 1, 1)), Map(vol, None, _orientation(vol)), 0.01)
 
 

@@ -1,10 +1,14 @@
 """compose: turn every cell of the tiling into a closed solid in mm, through the map F = M o R, with its joints.
 
-The boundary of each cell box is tessellated on one set of sample parameters per axis, shared by all cells, and
-mapped through F. Because the sets are global (and made invariant under every periodic seam), a face shared by
-two cells gets the same vertices and the same triangles from both sides, so neighbours meet on one cut surface
-without gaps or overlaps. Every grid vertex is evaluated in one fixed batch (the whole plane it lies on, on the
-canonical side of a seam), so the coordinates agree to the last bit, not only to a tolerance.
+The cell boxes' boundaries are tessellated once for the whole tiling, adaptively per face, in one global vertex table:
+  1. grid vertices (the cells' corners);
+  2. on every grid edge, 1D samples bisected until F's chord error meets the tolerance;
+  3. on every grid face, a 2D triangulation of its parameter rectangle whose boundary is exactly its four edges'
+     samples, refined (Delaunay on the face's parameters scaled to mm, new points at the centroids or edge midpoints
+     of triangles that miss F) until every triangle meets the tolerance.
+Each vertex is evaluated once and every face is triangulated once, so the two cells on a shared face (also across a
+periodic seam, where the min face is the max face seen through the seam map) use the same vertex ids and the same
+triangles: neighbours meet on one cut surface, bit for bit. A cell's surface is its six face meshes, oriented outward.
 """
 
 import concurrent.futures
@@ -14,16 +18,23 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import Delaunay
 
 from . import geometry
 from .errors import GeometryError
 
 AXES = "uvw"
-# Measured points (edge midpoints, quad centres, triangle centroids) are held to this fraction of the tolerance:
-# for a smooth surface the linear interpolant's error inside a triangle can exceed its value at those points.
+# Measured points (edge midpoints and quarter points, triangle centroids) are held to this fraction of the
+# tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
 _SAFETY = 0.8
-_MAX_SAMPLES = 20000  # per axis; beyond this the tolerance is far below what a printer can show
+_MAX_EDGE_SAMPLES = 20000  # per grid edge; beyond this the tolerance is far below what a printer can show
+_MAX_FACE_POINTS = 200000  # per grid face
+_ROUNDS = 60
 _WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
+_BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
+# Below this much work a process pool costs more (spawning, importing, pickling) than it saves.
+_POOL_MIN_PIECES = 16
+_POOL_MIN_TRIANGLES = 100000
 
 
 def _others(a):
@@ -31,24 +42,89 @@ def _others(a):
 
 
 # ------------------------------------------------------------------------------------------------------------
-# sampling
+# the lattice of grid vertices, edges and faces, and where periodic seams identify them
 
-@dataclass(frozen=True, eq=False)
-class Sampling:
-    """params: three sorted parameter arrays holding every break; break_index: three int arrays, where each
-    break of the tiling sits in params; seams: the tiling's seams as (axis, swap, flip) tuples; domain (2, 3);
-    max_error_mm: the largest deviation measured between F and its tessellation; tolerance: the goal in mm."""
 
-    params: tuple
-    break_index: tuple
-    seams: tuple
-    domain: np.ndarray
-    max_error_mm: float
-    tolerance: float
+class _Lattice:
+    """Integer grid: vertex g (3,) indexes the breaks; edge (a, g) runs from g to g + e_a; face (a, g) is the
+    rectangle at g spanned by the other two axes (b, c), b < c. Points on a periodic min face are identified with
+    points on the max face (their canonical place)."""
 
-    @property
-    def counts(self):
-        return tuple(len(p) for p in self.params)
+    def __init__(self, n, seams):
+        self.n = tuple(int(x) for x in n)
+        self.seams = tuple(seams)
+
+    def _to_max(self, g, seam):
+        a, swap, flip = seam
+        b, c = _others(a)
+        jb, jc = g[b], g[c]
+        # the inverse of Seam.map_max_to_min on the (integer, break-aligned) face coordinates: unflip, then unswap
+        if flip[0]:
+            jb = self.n[b] - jb
+        if flip[1]:
+            jc = self.n[c] - jc
+        if swap:
+            jb, jc = jc, jb
+        out = list(g)
+        out[a], out[b], out[c] = self.n[a], jb, jc
+        return out
+
+    def vertex(self, g):
+        g = list(g)
+        for _ in range(8):
+            moved = False
+            for s in self.seams:
+                if g[s[0]] == 0:
+                    g = self._to_max(g, s)
+                    moved = True
+            if not moved:
+                return tuple(g)
+        raise GeometryError("compose: grid vertices did not settle under the periodic seams")
+
+    def edge(self, a, g):
+        """-> (canonical key (axis, g0, g1, g2), reversed: the canonical edge runs the other way)."""
+        p0, p1 = list(g), list(g)
+        p1[a] += 1
+        for _ in range(8):
+            moved = False
+            for s in self.seams:
+                if p0[s[0]] == 0 and p1[s[0]] == 0:
+                    p0, p1 = self._to_max(p0, s), self._to_max(p1, s)
+                    moved = True
+            if not moved:
+                break
+        else:
+            raise GeometryError("compose: grid edges did not settle under the periodic seams")
+        ax = next(k for k in range(3) if p0[k] != p1[k])
+        rev = p0[ax] > p1[ax]
+        lo = p1 if rev else p0
+        return (ax, *lo), rev
+
+    def face(self, a, g):
+        """-> (canonical key (a, g0, g1, g2), seam (a, swap, flip) the face was seen through, or None)."""
+        for s in self.seams:
+            if s[0] == a and g[a] == 0:
+                b, c = _others(a)
+                corners = []
+                for db, dc in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                    p = list(g)
+                    p[b] += db
+                    p[c] += dc
+                    corners.append(self._to_max(p, s))
+                lo = np.min(np.array(corners), axis=0)
+                return (a, *(int(x) for x in lo)), s
+        return (a, *(int(x) for x in g)), None
+
+    def cell_faces(self, index):
+        """The six faces of a cell: (canonical key, min side (so reversed), seam or None, own (a, g))."""
+        out = []
+        for a in range(3):
+            for side in (0, 1):
+                g = list(index)
+                g[a] += side
+                key, seam = self.face(a, g)
+                out.append((key, side == 0, seam, (a, tuple(g))))
+        return out
 
 
 def _seam_tuples(tiling):
@@ -60,8 +136,164 @@ def _seam_tuples(tiling):
     return tuple(out)
 
 
+def _seen_through(st, seam):
+    """Canonical (max face) local coordinates (k, 2) -> the same points in the min face's own coordinates:
+    Seam.map_max_to_min, swap then flip (the cut grids are symmetric, so it holds cell by cell)."""
+    if seam is None:
+        return st
+    _, swap, flip = seam
+    st = np.array(st[:, ::-1] if swap else st, dtype=float)
+    for k in range(2):
+        if flip[k]:
+            st[:, k] = 1.0 - st[:, k]
+    return st
+
+
+# ------------------------------------------------------------------------------------------------------------
+# sampling
+
+
+@dataclass(frozen=True, eq=False)
+class FaceMesh:
+    """One canonical grid face: ids (k,) global vertex ids; st (k, 2) their coordinates in the face's rectangle
+    ([0, 1]^2 along its axes b < c); tris (m, 3) rows of ids' positions, oriented along +e_axis in parameter space."""
+
+    ids: np.ndarray
+    st: np.ndarray
+    tris: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Sampling:
+    """The global tessellation of every cell face. breaks: the tiling's three break arrays; seams: (axis, swap, flip)
+    tuples; domain (2, 3); uvw (n, 3) parameters and xyz (n, 3) mm of every vertex (each evaluated once); faces:
+    {canonical face key: FaceMesh}; max_error_mm: the largest deviation measured between F and its tessellation;
+    tolerance: the goal in mm."""
+
+    breaks: tuple
+    seams: tuple
+    domain: np.ndarray
+    uvw: np.ndarray
+    xyz: np.ndarray
+    faces: dict
+    max_error_mm: float
+    tolerance: float
+
+    @property
+    def lattice(self):
+        return _Lattice([len(b) - 1 for b in self.breaks], self.seams)
+
+    @property
+    def counts(self):
+        """(vertices, triangles) of the whole tessellation, each shared face counted once."""
+        return len(self.xyz), int(sum(len(f.tris) for f in self.faces.values()))
+
+
+def _ro(a):
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _knot_values(fmap, a, lo, hi):
+    vals = []
+    for vol in (fmap.warp, fmap.model):
+        if vol is not None:
+            k = np.unique(np.asarray(vol.knots[a], dtype=float))
+            vals.append(k[(k > lo) & (k < hi)])
+    return np.unique(np.concatenate(vals)) if vals else np.empty(0)
+
+
+def _edge_params(key, breaks, t):
+    a, g = key[0], key[1:]
+    uvw = np.empty((len(t), 3))
+    for k in range(3):
+        uvw[:, k] = breaks[k][g[k]]
+    uvw[:, a] = breaks[a][g[a]] + t * (breaks[a][g[a] + 1] - breaks[a][g[a]])
+    return uvw
+
+
+def _face_params(key, breaks, st):
+    a, g = key[0], key[1:]
+    b, c = _others(a)
+    uvw = np.empty((len(st), 3))
+    uvw[:, a] = breaks[a][g[a]]
+    uvw[:, b] = breaks[b][g[b]] + st[:, 0] * (breaks[b][g[b] + 1] - breaks[b][g[b]])
+    uvw[:, c] = breaks[c][g[c]] + st[:, 1] * (breaks[c][g[c] + 1] - breaks[c][g[c]])
+    return uvw
+
+
+def _sample_edges(keys, breaks, fmap, target, tolerance):
+    """Bisect every edge's intervals (all edges in one batch per round) until F's chord error at the quarter
+    points and the midpoint is at most target. -> ({key: sorted fractions (k,)}, {key: xyz (k, 3)}, worst)."""
+    t_list, e_list = [], []
+    for e, key in enumerate(keys):
+        a, g = key[0], key[1:]
+        lo, hi = breaks[a][g[a]], breaks[a][g[a] + 1]
+        kn = (_knot_values(fmap, a, lo, hi) - lo) / (hi - lo)
+        t = np.unique(np.concatenate([[0.0, 0.5, 1.0], kn]))
+        t_list.append(t)
+        e_list.append(np.full(len(t), e))
+    uvw = np.concatenate([_edge_params(k, breaks, t) for k, t in zip(keys, t_list)]) if keys else np.empty((0, 3))
+    x = fmap.evaluate(uvw) if len(uvw) else np.empty((0, 3))
+    # intervals: edge, t0, t1, x0, x1
+    ends = np.cumsum([len(t) for t in t_list])
+    first = ends - np.array([len(t) for t in t_list], dtype=int)
+    sel0 = np.concatenate([np.arange(f, e - 1) for f, e in zip(first, ends)]) if keys else np.empty(0, int)
+    T = np.concatenate(t_list) if keys else np.empty(0)
+    E = np.concatenate(e_list) if keys else np.empty(0, int)
+    ie, t0, t1, x0, x1 = E[sel0], T[sel0], T[sel0 + 1], x[sel0], x[sel0 + 1]
+    done = []
+    worst = 0.0
+    counts = np.array([len(t) for t in t_list])
+    fr = np.array([0.25, 0.5, 0.75])
+    for _ in range(_ROUNDS):
+        if len(ie) == 0:
+            break
+        q = t0[:, None] + (t1 - t0)[:, None] * fr[None, :]  # (m, 3)
+        key_of = [keys[i] for i in ie]
+        uvw = np.concatenate([_edge_params(k, breaks, q[i]) for i, k in enumerate(key_of)])
+        xq = fmap.evaluate(uvw).reshape(len(ie), 3, 3)
+        lin = x0[:, None, :] + fr[None, :, None] * (x1 - x0)[:, None, :]
+        err = np.linalg.norm(xq - lin, axis=2).max(axis=1)
+        bad = err > target
+        good = ~bad
+        if np.any(good):
+            worst = max(worst, float(err[good].max()))
+            done.append((ie[good], t0[good], x0[good]))
+        if not np.any(bad):
+            ie = ie[:0]
+            break
+        np.add.at(counts, ie[bad], 1)
+        if counts.max() > _MAX_EDGE_SAMPLES:
+            k = keys[int(np.argmax(counts))]
+            raise GeometryError(
+                f"output.tolerance: {tolerance:g} mm needs more than {_MAX_EDGE_SAMPLES} samples along "
+                f"{AXES[k[0]]} on one cell edge (got tolerance {tolerance:g}, expected a coarser one, "
+                f"e.g. {tolerance * 4:g})")
+        b_ie, b_t0, b_t1, b_x0, b_x1 = ie[bad], t0[bad], t1[bad], x0[bad], x1[bad]
+        tm, xm = 0.5 * (b_t0 + b_t1), xq[bad, 1]
+        ie = np.concatenate([b_ie, b_ie])
+        t0, t1 = np.concatenate([b_t0, tm]), np.concatenate([tm, b_t1])
+        x0, x1 = np.concatenate([b_x0, xm]), np.concatenate([xm, b_x1])
+    if len(ie):
+        raise GeometryError(f"output.tolerance: the cell edges did not reach {tolerance:g} mm in {_ROUNDS} rounds")
+    de = np.concatenate([d[0] for d in done]) if done else np.empty(0, int)
+    dt = np.concatenate([d[1] for d in done]) if done else np.empty(0)
+    dx = np.concatenate([d[2] for d in done]) if done else np.empty((0, 3))
+    order = np.lexsort((dt, de))
+    de, dt, dx = de[order], dt[order], dx[order]
+    split = np.searchsorted(de, np.arange(len(keys) + 1))
+    ts, xs = {}, {}
+    for e, key in enumerate(keys):
+        s, f = split[e], split[e + 1]
+        ts[key] = np.append(dt[s:f], 1.0)
+        xs[key] = np.concatenate([dx[s:f], [[np.nan] * 3]])  # the end is a grid vertex
+    return ts, xs, worst
+
+
 def _merge(values, new, eps):
-    """Sorted union of values and new, skipping new values within eps of one already there (keeps breaks exact)."""
+    """Sorted union of values and new, skipping new values within eps of one already there."""
     values = np.asarray(values, dtype=float)
     new = np.asarray(new, dtype=float)
     if new.size == 0:
@@ -71,332 +303,421 @@ def _merge(values, new, eps):
     new = np.unique(new[~near])
     if new.size == 0:
         return values, False
-    # the new values may still be near each other
     keep = np.concatenate([[True], np.diff(new) > eps])
     return np.union1d(values, new[keep]), True
 
 
-def _symmetrise(params, seams, domain):
-    """Add the images of the samples under every seam until the sets no longer change."""
-    params = list(params)
-    for _ in range(16):
-        changed = False
-        for a, swap, flip in seams:
-            b, c = _others(a)
-            lo, hi = domain[0], domain[1]
-            nb = (params[b] - lo[b]) / (hi[b] - lo[b])
-            nc = (params[c] - lo[c]) / (hi[c] - lo[c])
-            s, t = (nc, nb) if swap else (nb, nc)
-            s = 1.0 - s if flip[0] else s
-            t = 1.0 - t if flip[1] else t
-            for axis, img in ((b, s), (c, t)):
-                span = hi[axis] - lo[axis]
-                vals = np.clip(lo[axis] + img * span, lo[axis], hi[axis])
-                params[axis], ch = _merge(params[axis], vals, 1e-11 * span)
-                changed |= ch
-        if not changed:
-            return tuple(params)
-    raise GeometryError("compose: the sample sets did not settle under the periodic seams")
+def _edge_ref(lat, axis, start, ts, ids):
+    """The samples of the edge along axis from grid vertex start, in increasing local order: (t (k,), ids (k,))."""
+    key, rev = lat.edge(axis, start)
+    t, i = ts[key], ids[key]
+    return (1.0 - t[::-1], i[::-1]) if rev else (t, i)
 
 
-class _Grid:
-    """Positions of grid vertices for one sampling and one map: canonical indices and plane-batched evaluation."""
-
-    def __init__(self, params, break_index, seams, domain, fmap):
-        self.params = tuple(np.asarray(p, dtype=float) for p in params)
-        self.n = tuple(len(p) for p in self.params)
-        self.is_break = []
-        for a in range(3):
-            m = np.zeros(self.n[a], dtype=bool)
-            m[break_index[a]] = True
-            self.is_break.append(m)
-        self.fmap = fmap
-        self.domain = np.asarray(domain, dtype=float)
-        self._planes = {}
-        self._seams = [self._seam_tables(a, swap, flip) for a, swap, flip in seams]
-
-    def _seam_tables(self, a, swap, flip):
-        """Index tables taking a min-face grid point (along a) to the same point on the max face."""
-        b, c = _others(a)
-        lo, hi = self.domain
-        nb = (self.params[b] - lo[b]) / (hi[b] - lo[b])
-        nc = (self.params[c] - lo[c]) / (hi[c] - lo[c])
-
-        def find(norm, vals, axis):
-            pos = np.clip(np.searchsorted(norm, vals), 1, len(norm) - 1)
-            pick = np.where(np.abs(norm[pos] - vals) < np.abs(norm[pos - 1] - vals), pos, pos - 1)
-            if np.max(np.abs(norm[pick] - vals)) > 1e-8:
-                raise GeometryError(f"compose: the samples along {AXES[axis]} do not match across the "
-                                    f"{AXES[a]} seam")
-            return pick
-
-        # inverse of g: unflip (s', t'), then unswap
-        x = 1.0 - nb if flip[0] else nb  # from the min face's b index
-        y = 1.0 - nc if flip[1] else nc  # from the min face's c index
-        if swap:
-            # max-face b comes from y (min face c index), max-face c from x (min face b index)
-            return a, b, c, swap, find(nb, y, b), find(nc, x, c)
-        return a, b, c, swap, find(nb, x, b), find(nc, y, c)
-
-    def canonical(self, idx):
-        """(m, 3) grid indices -> (m, 3) indices of the same points, moved off every periodic min face."""
-        idx = np.array(idx, dtype=np.int64, copy=True)
-        for _ in range(8):
-            moved = False
-            for a, b, c, swap, tb, tc in self._seams:
-                on = idx[:, a] == 0
-                if not np.any(on):
-                    continue
-                moved = True
-                ib, ic = idx[on, b], idx[on, c]
-                if swap:
-                    idx[on, b], idx[on, c] = tb[ic], tc[ib]
-                else:
-                    idx[on, b], idx[on, c] = tb[ib], tc[ic]
-                idx[on, a] = self.n[a] - 1
-            if not moved:
-                return idx
-        raise GeometryError("compose: grid indices did not settle under the periodic seams")
-
-    def fill(self):
-        """Evaluate every break plane now (before the grid is sent to worker processes)."""
-        for a in range(3):
-            for i in np.flatnonzero(self.is_break[a]):
-                self.plane(a, int(i))
-        return self
-
-    def keys(self, idx):
-        return np.ravel_multi_index(tuple(np.asarray(idx).T), self.n)
-
-    def plane(self, a, i):
-        """F on the whole plane params[a] == params[a][i]: (n_b, n_c, 3), evaluated in one batch."""
-        key = (a, i)
-        if key not in self._planes:
-            b, c = _others(a)
-            uvw = np.empty((self.n[b], self.n[c], 3))
-            uvw[..., a] = self.params[a][i]
-            uvw[..., b] = self.params[b][:, None]
-            uvw[..., c] = self.params[c][None, :]
-            xyz = self.fmap.evaluate(uvw.reshape(-1, 3)).reshape(self.n[b], self.n[c], 3)
-            xyz.setflags(write=False)
-            self._planes[key] = xyz
-        return self._planes[key]
-
-    def positions(self, cidx):
-        """(m, 3) canonical grid indices, each on at least one break plane -> (m, 3) mm."""
-        cidx = np.asarray(cidx, dtype=np.int64)
-        out = np.empty((len(cidx), 3))
-        done = np.zeros(len(cidx), dtype=bool)
-        for a in range(3):
-            b, c = _others(a)
-            sel = ~done & self.is_break[a][cidx[:, a]]
-            for i in np.unique(cidx[sel, a]):
-                rows = sel & (cidx[:, a] == i)
-                out[rows] = self.plane(a, int(i))[cidx[rows, b], cidx[rows, c]]
-            done |= sel
-        if not np.all(done):
-            raise GeometryError("compose: a vertex off every cell face was asked for (internal error)")
-        return out
-
-
-def _face_quads(grid, a, i, rb, rc):
-    """Quads of plane (a, i) over b indices rb, c indices rc: (own indices (nb, nc, 3), canonical keys (nb, nc),
-    positions (nb, nc, 3), main (nb-1, nc-1) bool: True where the diagonal 00-11 is used)."""
+def _face_edges(lat, key):
+    """The four edges of a face in its own frame: bottom (t=0), right (s=1), top (t=1), left (s=0), as
+    (axis, start) pairs; each runs in increasing s or t."""
+    a, g = key[0], list(key[1:])
     b, c = _others(a)
-    idx = np.empty((len(rb), len(rc), 3), dtype=np.int64)
-    idx[..., a] = i
-    idx[..., b] = np.asarray(rb)[:, None]
-    idx[..., c] = np.asarray(rc)[None, :]
-    flat = idx.reshape(-1, 3)
-    cidx = grid.canonical(flat)
-    keys = grid.keys(cidx).reshape(len(rb), len(rc))
-    pos = grid.positions(cidx).reshape(len(rb), len(rc), 3)
-    p00, p10, p01, p11 = pos[:-1, :-1], pos[1:, :-1], pos[:-1, 1:], pos[1:, 1:]
-    d_main = np.linalg.norm(p11 - p00, axis=-1)
-    d_anti = np.linalg.norm(p01 - p10, axis=-1)
-    k00, k10, k01, k11 = keys[:-1, :-1], keys[1:, :-1], keys[:-1, 1:], keys[1:, 1:]
-    # the shorter diagonal; exact ties go by the smallest canonical key, which both sides of a face share
-    tie_main = np.minimum(k00, k11) < np.minimum(k10, k01)
-    main = (d_main < d_anti) | ((d_main == d_anti) & tie_main)
-    return idx, keys, pos, main
+    gb, gc = list(g), list(g)
+    gb[b] += 1
+    gc[c] += 1
+    return (b, g), (c, gb), (b, gc), (c, g)
 
 
-def _measure(grid, fmap, tol_target):
-    """Largest deviation of the tessellation from F on every break plane; flags per axis interval to bisect."""
-    flags = [np.zeros(n - 1, dtype=bool) for n in grid.n]
-    worst = 0.0
-    periodic_axes = {s[0] for s in grid._seams}
-    for a in range(3):
-        b, c = _others(a)
-        pb, pc = grid.params[b], grid.params[c]
-        for i in np.flatnonzero(grid.is_break[a]):
-            if a in periodic_axes and i == 0:
-                continue  # the same surface as the max plane, which is measured
-            _, _, g, main = _face_quads(grid, a, int(i), np.arange(len(pb)), np.arange(len(pc)))
-            t = grid.params[a][i]
-            mb = 0.5 * (pb[:-1] + pb[1:])
-            mc = 0.5 * (pc[:-1] + pc[1:])
-
-            def ev(bb, cc):
-                bb, cc = np.broadcast_arrays(bb, cc)
-                uvw = np.empty(bb.shape + (3,))
-                uvw[..., a], uvw[..., b], uvw[..., c] = t, bb, cc
-                return fmap.evaluate(uvw.reshape(-1, 3)).reshape(bb.shape + (3,))
-
-            eb = np.linalg.norm(ev(mb[:, None], pc[None, :]) - 0.5 * (g[:-1] + g[1:]), axis=-1)  # (nb-1, nc)
-            ec = np.linalg.norm(ev(pb[:, None], mc[None, :]) - 0.5 * (g[:, :-1] + g[:, 1:]), axis=-1)  # (nb, nc-1)
-            flags[b] |= eb.max(axis=1) > tol_target
-            flags[c] |= ec.max(axis=0) > tol_target
-            worst = max(worst, float(eb.max(initial=0)), float(ec.max(initial=0)))
-            p00, p10, p01, p11 = g[:-1, :-1], g[1:, :-1], g[:-1, 1:], g[1:, 1:]
-            b0, b1 = pb[:-1, None], pb[1:, None]
-            c0, c1 = pc[None, :-1], pc[None, 1:]
-            centre = ev(0.5 * (b0 + b1), 0.5 * (c0 + c1))
-            dmid = np.where(main[..., None], 0.5 * (p00 + p11), 0.5 * (p10 + p01))
-            eq = np.linalg.norm(centre - dmid, axis=-1)
-            # triangle centroids: main (00,10,11), (00,11,01); anti (00,10,01), (10,11,01)
-            third = lambda x0, x1: (2 * x0 + x1) / 3  # noqa: E731
-            for bm, cm, lm, ba, ca, la in (
-                    (third(b1, b0), third(c0, c1), (p00 + p10 + p11) / 3,
-                     third(b0, b1), third(c0, c1), (p00 + p10 + p01) / 3),
-                    (third(b0, b1), third(c1, c0), (p00 + p11 + p01) / 3,
-                     third(b1, b0), third(c1, c0), (p10 + p11 + p01) / 3)):
-                xyz = ev(np.where(main, bm, ba), np.where(main, cm, ca))
-                eq = np.maximum(eq, np.linalg.norm(xyz - np.where(main[..., None], lm, la), axis=-1))
-            worst = max(worst, float(eq.max(initial=0)))
-            bad = eq > tol_target
-            if np.any(bad):
-                lb = np.linalg.norm(p10 - p00, axis=-1)
-                lc = np.linalg.norm(p01 - p00, axis=-1)
-                flags[b] |= np.any(bad & (lb >= lc), axis=1)
-                flags[c] |= np.any(bad & (lc > lb), axis=0)
-    return worst, flags
-
-
-def _initial_params(tiling, fmap):
-    params = []
-    src = fmap.warp if fmap.warp is not None else fmap.model
-    for a in range(3):
-        br = np.asarray(tiling.breaks[a], dtype=float)
-        k = np.asarray(src.knots[a], dtype=float)
-        k = k[(k > br[0]) & (k < br[-1])]
-        mids = 0.5 * (br[:-1] + br[1:])
-        vals = np.unique(np.concatenate([br, mids]))
-        vals, _ = _merge(vals, k, 1e-9 * (br[-1] - br[0]))
-        params.append(vals)
-    return params
-
-
-def _break_index(params, breaks):
+def _chains(lat, key, ts, ids):
+    """-> four (st (k, 2), ids (k,)) chains, each in increasing s or t: bottom, right, top, left."""
     out = []
-    for p, br in zip(params, breaks):
-        i = np.searchsorted(p, br)
-        i = np.clip(i, 0, len(p) - 1)
-        assert np.all(p[i] == br)
-        out.append(i.astype(np.int64))
-    return tuple(out)
+    for k, (axis, start) in enumerate(_face_edges(lat, key)):
+        t, i = _edge_ref(lat, axis, start, ts, ids)
+        st = np.empty((len(t), 2))
+        if k in (0, 2):
+            st[:, 0], st[:, 1] = t, 0.0 if k == 0 else 1.0
+        else:
+            st[:, 0], st[:, 1] = 1.0 if k == 1 else 0.0, t
+        out.append((st, i))
+    return out
+
+
+def _polygon(chains):
+    """The four chains -> the face boundary counter-clockwise in (s, t): st (k, 2), ids (k,), each corner once."""
+    (sb, ib), (sr, ir), (su, iu), (sl, il) = chains
+    st = np.concatenate([sb[:-1], sr[:-1], su[::-1][:-1], sl[::-1][:-1]])
+    ids = np.concatenate([ib[:-1], ir[:-1], iu[::-1][:-1], il[::-1][:-1]])
+    return st, ids
+
+
+def _chain_local(chains):
+    """Positions in _polygon's order of the four chains' points (each in increasing s or t)."""
+    lens = [len(c[1]) for c in chains]
+    total = sum(lens) - 4
+    o_r = lens[0] - 1
+    o_u = o_r + lens[1] - 1
+    o_l = o_u + lens[2] - 1
+    bottom = np.arange(lens[0])
+    right = o_r + np.arange(lens[1])
+    top = o_u + (lens[2] - 1 - np.arange(lens[2]))
+    left = (o_l + (lens[3] - 1 - np.arange(lens[3]))) % total
+    return bottom, right, top, left
+
+
+def _ladder(rail_l, rail_r, cap_lo, cap_hi):
+    """Triangles (as id triples) of a face that F squeezes across the rails' direction: rails l and r carry the same
+    levels, and every triangle joins only neighbouring levels, so after welding each has a repeated vertex.
+    cap_lo runs from l[0] to r[0], cap_hi from l[-1] to r[-1]."""
+    n = len(rail_l) - 1
+    L, R = rail_l, rail_r
+    tris = []
+    if n == 1:
+        tris += [(L[1], cap_lo[k], cap_lo[k + 1]) for k in range(len(cap_lo) - 1)]
+        tris += [(R[0], cap_hi[k], cap_hi[k + 1]) for k in range(len(cap_hi) - 1)]
+        return tris
+    tris += [(L[1], cap_lo[k], cap_lo[k + 1]) for k in range(len(cap_lo) - 1)]
+    tris.append((L[1], R[0], R[1]))
+    for i in range(1, n - 1):
+        tris += [(L[i], R[i], R[i + 1]), (L[i], R[i + 1], L[i + 1])]
+    tris += [(R[n - 1], cap_hi[k], cap_hi[k + 1]) for k in range(len(cap_hi) - 1)]
+    tris.append((L[n - 1], R[n - 1], L[n]))
+    return tris
+
+
+def _signed_area(p, tris):
+    a, b, c = p[tris[:, 0]], p[tris[:, 1]], p[tris[:, 2]]
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+
+
+def _ccw(p, tris):
+    area = _signed_area(p, tris)
+    tris = np.where((area < 0)[:, None], tris[:, [0, 2, 1]], tris)
+    return tris, np.abs(area)
+
+
+class _FaceWork:
+    """One canonical face under refinement: points st (k, 2) in its rectangle, their xyz, the first nb on the
+    boundary (counter-clockwise), scaled by the face's lengths in mm for well-shaped triangles."""
+
+    def __init__(self, key, st_b, ids_b, xyz_b, scale, seed):
+        self.key = key
+        self.nb = len(st_b)
+        self.ids_b = ids_b
+        self.st = np.concatenate([st_b, seed])
+        self.xyz = np.concatenate([xyz_b, np.full((len(seed), 3), np.nan)])
+        self.scale = np.asarray(scale, dtype=float)
+        self.tris = None
+        self.worst = 0.0
+        self.rng = np.random.default_rng([int(x) for x in key])
+
+    def triangulate(self):
+        nb, n = self.nb, len(self.st)
+        s, t = self.st[:, 0], self.st[:, 1]
+        true = self.st * self.scale
+        total = float(np.prod(self.scale))
+        for eps in _BULGE:
+            # bow every side outward (zero at the corners) so that collinear boundary points become strictly convex:
+            # the hull is then exactly the boundary, and Delaunay keeps every boundary segment
+            q = np.stack([(s - 0.5) * (1 + eps * 4 * t * (1 - t)), (t - 0.5) * (1 + eps * 4 * s * (1 - s))], 1)
+            try:
+                tri = Delaunay(q * self.scale).simplices.astype(np.int64)
+            except Exception:  # qhull refuses (e.g. too few distinct points): try a smaller bulge, then give up
+                continue
+            tri, area = _ccw(true, tri)
+            if len(np.unique(tri)) != n or np.min(area) <= 1e-12 * total or abs(area.sum() - total) > 1e-9 * total:
+                continue
+            e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+            bnd = np.sort(np.stack([np.arange(nb), (np.arange(nb) + 1) % nb], 1), axis=1)
+            have = set(map(tuple, e[(e[:, 1] < nb)]))
+            if all(tuple(x) in have for x in bnd):
+                self.tris = tri
+                return tri
+        raise GeometryError(f"compose: could not triangulate the {AXES[self.key[0]]} face at grid {self.key[1:]} "
+                            f"with {n} points (internal error)")
+
+    def measure_points(self):
+        """-> st of centroids (m, 2), interior edge midpoints (e, 2), two random points per triangle (2m, 2),
+        with their linear (tessellated) xyz, and the edges (e, 2) and triangle-edge indices (m, 3)."""
+        tri, st, x, nb = self.tris, self.st, self.xyz, self.nb
+        m = len(tri)
+        e_all = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+        edges, inv = np.unique(e_all, axis=0, return_inverse=True)
+        inv = inv.reshape(3, m).T
+        d = (edges[:, 1] - edges[:, 0]) % nb
+        boundary = (edges[:, 1] < nb) & ((d == 1) | (d == nb - 1))
+        lam = self.rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
+        pts = [st[tri].mean(axis=1), 0.5 * (st[edges[:, 0]] + st[edges[:, 1]]),
+               np.einsum("mkj,mjd->mkd", lam, st[tri]).reshape(-1, 2)]
+        lin = [x[tri].mean(axis=1), 0.5 * (x[edges[:, 0]] + x[edges[:, 1]]),
+               np.einsum("mkj,mjd->mkd", lam, x[tri]).reshape(-1, 3)]
+        self._meas = (edges, inv, boundary, lin)
+        return np.concatenate(pts)
+
+    def update(self, xyz_measured, target, tolerance):
+        """Given F at measure_points(): insert points where the tessellation misses F. -> True when done."""
+        edges, inv, boundary, lin = self._meas
+        m, ne = len(self.tris), len(edges)
+        xc, xm, xr = xyz_measured[:m], xyz_measured[m:m + ne], xyz_measured[m + ne:]
+        ec = np.linalg.norm(xc - lin[0], axis=1)
+        em = np.linalg.norm(xm - lin[1], axis=1)
+        em[boundary] = 0.0  # fitted along the edge already; the boundary must stay as the neighbours see it
+        er = np.linalg.norm(xr - lin[2], axis=1).reshape(m, 2).max(axis=1)
+        bad_edge = em > target
+        bad_tri = ((ec > target) | (er > tolerance)) & ~np.any(bad_edge[inv], axis=1)
+        if not np.any(bad_edge) and not np.any(bad_tri):
+            self.worst = float(max(ec.max(initial=0), em.max(initial=0), er.max(initial=0)))
+            return True
+        pts_c = self.st[self.tris[bad_tri]].mean(axis=1)
+        pts_m = 0.5 * (self.st[edges[bad_edge, 0]] + self.st[edges[bad_edge, 1]])
+        self.st = np.concatenate([self.st, pts_c, pts_m])
+        self.xyz = np.concatenate([self.xyz, xc[bad_tri], xm[bad_edge]])
+        return False
+
+
+def _face_lengths(x5):
+    """F on a (5, 5) grid of a face (i along s, j along t) -> mean lengths along s and t, collapsed along s / t."""
+    ds = np.linalg.norm(np.diff(x5, axis=0), axis=2)  # (4, 5)
+    dt = np.linalg.norm(np.diff(x5, axis=1), axis=2)  # (5, 4)
+    spread_s = np.linalg.norm(x5 - x5[:1], axis=2).max()
+    spread_t = np.linalg.norm(x5 - x5[:, :1], axis=2).max()
+    return ds.sum(axis=0).mean(), dt.sum(axis=1).mean(), spread_s <= _WELD_MM, spread_t <= _WELD_MM
+
+
+def _seed(scale, knots_s, knots_t):
+    """A coarse interior grid (about 4 cells across the longer side) plus points on the interior knot lines."""
+    h = max(scale) / 4.0
+    ks, kt = (max(2, int(round(x / h))) for x in scale)
+    s = np.arange(1, ks) / ks
+    t = np.arange(1, kt) / kt
+    s_all, _ = _merge(np.concatenate([[0.0], s, [1.0]]), knots_s, 1e-9)
+    t_all, _ = _merge(np.concatenate([[0.0], t, [1.0]]), knots_t, 1e-9)
+    pts = [np.stack(np.meshgrid(s, t_all, indexing="ij"), -1).reshape(-1, 2),
+           np.stack(np.meshgrid(s_all, t, indexing="ij"), -1).reshape(-1, 2)]
+    pts = np.unique(np.concatenate(pts), axis=0)
+    return pts[(pts[:, 0] > 1e-6) & (pts[:, 0] < 1 - 1e-6) & (pts[:, 1] > 1e-6) & (pts[:, 1] < 1 - 1e-6)]
 
 
 def sample_parameters(tiling, fmap, tolerance):
-    """Adaptive per-axis sample parameters, refined by bisection until the tessellation of every cell face deviates
+    """The adaptive tessellation of every cell face: edges bisected, faces refined, until the tessellation deviates
     from F by at most `tolerance` mm at the measured points. -> Sampling."""
     tolerance = float(tolerance)
     if not tolerance > 0:
         raise GeometryError(f"output.tolerance: must be > 0 mm (got {tolerance:g})")
-    seams = _seam_tuples(tiling)
-    domain = np.asarray(tiling.domain, dtype=float)
-    params = _symmetrise(_initial_params(tiling, fmap), seams, domain)
     target = _SAFETY * tolerance
+    seams = _seam_tuples(tiling)
+    breaks = tuple(np.asarray(b, dtype=float) for b in tiling.breaks)
+    lat = _Lattice([len(b) - 1 for b in breaks], seams)
+
+    # canonical faces, edges, vertices
+    faces = sorted({lat.face(a, g)[0] for index in sorted(tiling.cells) for a, g in
+                    ((a, tuple(index[k] + (side if k == a else 0) for k in range(3)))
+                     for a in range(3) for side in (0, 1))})
+    edges = sorted({lat.edge(axis, start)[0] for key in faces for axis, start in _face_edges(lat, key)})
+    verts = sorted({lat.vertex(g) for key in edges for g in (key[1:], tuple(key[1 + k] + (k == key[0])
+                                                                             for k in range(3)))})
+    vid = {g: i for i, g in enumerate(verts)}
+    v_uvw = np.array([[breaks[k][g[k]] for k in range(3)] for g in verts], dtype=float)
+
+    # how long each face is in mm, and whether F squeezes it onto a line or a point (collapsed axes)
+    grid5 = np.linspace(0.0, 1.0, 5)
+    st5 = np.stack(np.meshgrid(grid5, grid5, indexing="ij"), -1).reshape(-1, 2)
+    x5 = fmap.evaluate(np.concatenate([_face_params(k, breaks, st5) for k in faces]) if faces else np.empty((0, 3)))
+    x5 = x5.reshape(len(faces), 5, 5, 3)
+    info = {k: _face_lengths(x5[i]) for i, k in enumerate(faces)}
+
+    ts, xs, worst_edge = _sample_edges(edges, breaks, fmap, target, tolerance)
+    # a face squeezed across one direction is laddered between its two rails, which must then carry the same levels
+    ladders = [k for k in faces if info[k][2] != info[k][3]]
+    changed_keys = set()
     for _ in range(64):
-        bi = _break_index(params, tiling.breaks)
-        grid = _Grid(params, bi, seams, domain, fmap)
-        worst, flags = _measure(grid, fmap, target)
-        if not any(f.any() for f in flags):
-            return Sampling(tuple(_ro(p) for p in params), bi, seams, _ro(domain), worst, tolerance)
-        new = []
-        for a in range(3):
-            p = params[a]
-            mids = 0.5 * (p[:-1] + p[1:])[flags[a]]
-            new.append(np.union1d(p, mids))
-            if len(new[a]) > _MAX_SAMPLES:
-                raise GeometryError(
-                    f"output.tolerance: {tolerance:g} mm needs more than {_MAX_SAMPLES} samples along "
-                    f"{AXES[a]} (got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
-        params = _symmetrise(new, seams, domain)
-    raise GeometryError(f"output.tolerance: the tessellation did not reach {tolerance:g} mm (worst {worst:g} mm)")
+        changed = False
+        for key in ladders:
+            bottom, right, top, left = _face_edges(lat, key)
+            rails = (left, right) if info[key][2] else (bottom, top)
+            refs = [lat.edge(axis, start) for axis, start in rails]
+            local = [1.0 - ts[k][::-1] if rev else ts[k] for k, rev in refs]
+            for (k, rev), mine, other in ((refs[0], local[0], local[1]), (refs[1], local[1], local[0])):
+                u, ch = _merge(mine, other, 1e-12)
+                if ch:
+                    ts[k] = 1.0 - u[::-1] if rev else u
+                    changed_keys.add(k)
+                    changed = True
+        if not changed:
+            break
+    else:
+        raise GeometryError("compose: the samples of squeezed faces did not settle (internal error)")
+    if changed_keys:
+        ck = sorted(changed_keys)
+        x = fmap.evaluate(np.concatenate([_edge_params(k, breaks, ts[k]) for k in ck]))
+        pos = 0
+        for k in ck:
+            xs[k] = x[pos:pos + len(ts[k])]
+            pos += len(ts[k])
+
+    # global ids: grid vertices, then edge interiors, then face interiors
+    uvw_parts, xyz_parts = [v_uvw], [fmap.evaluate(v_uvw)]
+    n_ids = len(verts)
+    e_ids = {}
+    for key in edges:
+        t = ts[key]
+        inner = np.arange(n_ids, n_ids + len(t) - 2)
+        n_ids += len(inner)
+        g1 = tuple(key[1 + k] + (k == key[0]) for k in range(3))
+        e_ids[key] = np.concatenate([[vid[lat.vertex(key[1:])]], inner, [vid[lat.vertex(g1)]]]).astype(np.int64)
+        uvw_parts.append(_edge_params(key, breaks, t[1:-1]))
+        xyz_parts.append(xs[key][1:-1])
+    xyz_so_far = np.concatenate(xyz_parts)
+
+    meshes, works = {}, []
+    for key in faces:
+        chains = _chains(lat, key, ts, e_ids)
+        st_b, ids_b = _polygon(chains)
+        ls, lt, squeezed_s, squeezed_t = info[key]
+        if squeezed_s and squeezed_t:
+            # a whole face on one point: a fan about its centre, which welding removes
+            c = len(st_b)
+            tris = np.array([(c, i, (i + 1) % c) for i in range(c)], dtype=np.int64)
+            meshes[key] = (np.concatenate([st_b, [[0.5, 0.5]]]), ids_b, tris, True)
+        elif squeezed_s or squeezed_t:
+            bl, rl, ul, ll = _chain_local(chains)
+            rails = (ll, rl, bl, ul) if squeezed_s else (bl, ul, ll, rl)
+            meshes[key] = (st_b, ids_b, np.array(_ladder(*rails), dtype=np.int64), False)
+        else:
+            a, g = key[0], key[1:]
+            b, c = _others(a)
+            kn = []
+            for ax in (b, c):
+                lo, hi = breaks[ax][g[ax]], breaks[ax][g[ax] + 1]
+                kn.append((_knot_values(fmap, ax, lo, hi) - lo) / (hi - lo))
+            scale = np.maximum([ls, lt], 1e-9 * max(ls, lt, 1e-3))
+            works.append(_FaceWork(key, st_b, ids_b, xyz_so_far[ids_b], scale, _seed(scale, *kn)))
+
+    worst_face = _refine_faces(works, breaks, fmap, target, tolerance)
+    for w in works:
+        meshes[w.key] = (w.st, w.ids_b, w.tris, False)
+
+    fm = {}
+    for key in faces:
+        st, ids_b, tris, centre = meshes[key]
+        n_in = len(st) - len(ids_b)
+        ids = np.concatenate([ids_b, np.arange(n_ids, n_ids + n_in)]).astype(np.int64)
+        n_ids += n_in
+        if n_in:
+            uvw_in = _face_params(key, breaks, st[len(ids_b):])
+            uvw_parts.append(uvw_in)
+            w = next((w for w in works if w.key == key), None)
+            xyz_parts.append(w.xyz[len(ids_b):] if w is not None else fmap.evaluate(uvw_in))
+        tris, _ = _ccw(st, np.asarray(tris, dtype=np.int64))
+        if key[0] == 1:  # e_u x e_w = -e_v: counter-clockwise in (s, t) faces -v
+            tris = tris[:, [0, 2, 1]]
+        fm[key] = FaceMesh(_ro(ids), _ro(st), _ro(tris))
+    uvw = np.concatenate(uvw_parts)
+    xyz = np.concatenate(xyz_parts)
+    if not np.all(np.isfinite(xyz)):
+        raise GeometryError("compose: F gave non-finite points on the cell faces")
+    return Sampling(breaks, seams, _ro(np.asarray(tiling.domain, dtype=float)), _ro(uvw), _ro(xyz), fm,
+                    float(max(worst_edge, worst_face)), tolerance)
 
 
-def _ro(a):
-    a = np.array(a, copy=True)
-    a.setflags(write=False)
-    return a
-
-
-def _grid_for(sampling, fmap):
-    return _Grid(sampling.params, sampling.break_index, sampling.seams, sampling.domain, fmap)
+def _refine_faces(works, breaks, fmap, target, tolerance):
+    """Refine all faces together, one batched evaluation of F per round. -> the largest error measured."""
+    new = [w for w in works if np.isnan(w.xyz).any()]
+    if new:
+        pts = [w.st[np.isnan(w.xyz[:, 0])] for w in new]
+        x = fmap.evaluate(np.concatenate([_face_params(w.key, breaks, p) for w, p in zip(new, pts)]))
+        pos = 0
+        for w, p in zip(new, pts):
+            w.xyz[np.isnan(w.xyz[:, 0])] = x[pos:pos + len(p)]
+            pos += len(p)
+    active = list(works)
+    for _ in range(_ROUNDS):
+        if not active:
+            break
+        pts = []
+        for w in active:
+            w.triangulate()
+            pts.append(w.measure_points())
+        x = fmap.evaluate(np.concatenate([_face_params(w.key, breaks, p) for w, p in zip(active, pts)]))
+        pos = 0
+        still = []
+        for w, p in zip(active, pts):
+            if not w.update(x[pos:pos + len(p)], target, tolerance):
+                still.append(w)
+                if len(w.st) > _MAX_FACE_POINTS:
+                    raise GeometryError(
+                        f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points on one cell "
+                        f"face (got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
+            pos += len(p)
+        active = still
+    if active:
+        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {_ROUNDS} rounds")
+    return max((w.worst for w in works), default=0.0)
 
 
 # ------------------------------------------------------------------------------------------------------------
 # cell surfaces
 
-def _cell_boundary(cell, sampling, grid):
-    """Triangles of the cell box's boundary as own grid indices (t, 3, 3) and canonical keys (t, 3),
-    oriented outward in parameter space."""
-    idx3 = []
-    keys3 = []
-    rng = []
-    for a in range(3):
-        lo = int(sampling.break_index[a][cell.index[a]])
-        hi = int(sampling.break_index[a][cell.index[a] + 1])
-        rng.append(np.arange(lo, hi + 1))
-    for a in range(3):
+
+def _cell_ids(cell, sampling, lat=None):
+    """Triangles of the cell's boundary as global vertex ids (t, 3), oriented outward in parameter space."""
+    lat = lat or sampling.lattice
+    out = []
+    for key, reverse, _, _ in lat.cell_faces(tuple(cell.index)):
+        fm = sampling.faces[key]
+        t = fm.ids[fm.tris]
+        out.append(t[:, [0, 2, 1]] if reverse else t)
+    return np.concatenate(out)
+
+
+def cell_parameter_mesh(cell, sampling):
+    """The cell box's boundary in its own parameters, as the faces' tessellation places it: uvw (n, 3), ids (n,)
+    (global vertex ids: xyz = sampling.xyz[ids]), faces (m, 3) rows of uvw, outward in parameter space, and
+    face_of (n,) int: bit 2a + side set for a point on the min (side 0) or max (side 1) face along a."""
+    lat = sampling.lattice
+    box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
+    uvw, ids, tris, bits = [], [], [], []
+    n = 0
+    for key, reverse, seam, (a, _) in lat.cell_faces(tuple(cell.index)):
+        fm = sampling.faces[key]
         b, c = _others(a)
-        sign = -1 if a == 1 else 1  # e_b x e_c = sign * e_a for b < c
-        for side, i in ((-1, rng[a][0]), (1, rng[a][-1])):
-            idx, keys, _, main = _face_quads(grid, a, int(i), rng[b], rng[c])
-            q = [(slice(None, -1), slice(None, -1)), (slice(1, None), slice(None, -1)),
-                 (slice(1, None), slice(1, None)), (slice(None, -1), slice(1, None))]
-            ki = [idx[s].reshape(-1, 3) for s in q]
-            kk = [keys[s].ravel() for s in q]
-            m = main.ravel()
-            # corners 0=00, 1=10, 2=11, 3=01 counter-clockwise about e_b x e_c
-            tri_main = [(0, 1, 2), (0, 2, 3)]
-            tri_anti = [(0, 1, 3), (1, 2, 3)]
-            for tm, ta in zip(tri_main, tri_anti):
-                order = [np.where(m, tm[k], ta[k]) for k in range(3)]
-                if sign * side < 0:
-                    order = [order[0], order[2], order[1]]
-                ti = np.stack([_pick(ki, o) for o in order], axis=1)
-                tk = np.stack([_pick(kk, o) for o in order], axis=1)
-                idx3.append(ti)
-                keys3.append(tk)
-    return np.concatenate(idx3), np.concatenate(keys3)
-
-
-def _pick(arrs, which):
-    out = np.empty_like(arrs[0])
-    for k, arr in enumerate(arrs):
-        sel = which == k
-        out[sel] = arr[sel]
-    return out
-
-
-def _surface_from_keys(grid, keys, orientation):
-    """Canonical keys (t, 3) -> welded, outward vertices (n, 3) mm and faces (m, 3)."""
-    uniq, faces = np.unique(keys.ravel(), return_inverse=True)
-    faces = faces.reshape(-1, 3)
-    cidx = np.stack(np.unravel_index(uniq, grid.n), axis=1)
-    verts = grid.positions(cidx)
-    if orientation < 0:
-        faces = faces[:, [0, 2, 1]]
-    return geometry.weld(verts, faces, _WELD_MM)
+        st = _seen_through(np.asarray(fm.st), seam)
+        q = np.empty((len(st), 3))
+        q[:, a] = box[0 if reverse else 1, a]
+        q[:, b] = box[0, b] + st[:, 0] * (box[1, b] - box[0, b])
+        q[:, c] = box[0, c] + st[:, 1] * (box[1, c] - box[0, c])
+        # exact box values on the rectangle's sides, so that the faces meeting at a box edge share their points
+        for k, col in ((b, 0), (c, 1)):
+            q[st[:, col] == 0.0, k] = box[0, k]
+            q[st[:, col] == 1.0, k] = box[1, k]
+        uvw.append(q)
+        ids.append(fm.ids)
+        t = fm.tris[:, [0, 2, 1]] if reverse else fm.tris
+        tris.append(t + n)
+        n += len(st)
+    uvw, ids, tris = np.concatenate(uvw), np.concatenate(ids), np.concatenate(tris)
+    # one point per id, unless the id sits at two places of this box (a cell closing on itself across a seam)
+    span = box[1] - box[0]
+    _, first_of = np.unique(ids, return_index=True)
+    ref = uvw[first_of[np.searchsorted(ids[first_of], ids)]]
+    far = np.max(np.abs(uvw - ref) / span, axis=1) > 1e-6
+    place = np.zeros((len(uvw), 3), dtype=np.int64)
+    place[far] = np.round((uvw[far] - box[0]) / span * 2 ** 20).astype(np.int64)
+    _, first, inv = np.unique(np.column_stack([ids, place]), axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    uvw, ids, tris = uvw[first], ids[first], inv[tris]
+    tol = 1e-9 * span
+    bits = np.zeros(len(uvw), dtype=np.int64)
+    for a in range(3):
+        bits[np.abs(uvw[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
+        bits[np.abs(uvw[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
+    return uvw, ids, tris, bits
 
 
 def cell_surface(cell, sampling, fmap, grid=None):
     """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int)."""
-    grid = grid if grid is not None else _grid_for(sampling, fmap)
-    _, keys = _cell_boundary(cell, sampling, grid)
-    return _surface_from_keys(grid, keys, fmap.orientation)
+    keys = _cell_ids(cell, sampling)
+    uniq, faces = np.unique(keys.ravel(), return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    if fmap.orientation < 0:
+        faces = faces[:, [0, 2, 1]]
+    return geometry.weld(sampling.xyz[uniq], faces, _WELD_MM)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -473,73 +794,58 @@ def _wrap(uvw, sampling):
     return uvw
 
 
-def _face_positions(cell, sampling, grid, q):
-    """Vertices on the cell box's faces take the mapped grid's piecewise-linear positions, so a face cut by a pin
-    or hole in the domain still lies exactly on the cut surface the neighbour sees.
-    -> xyz (n, 3) (NaN off the faces), mask (n,) int: bit 2a+side set when on that face."""
-    xyz = np.full(q.shape, np.nan)
-    mask = np.zeros(len(q), dtype=np.int64)
-    rng = []
-    for a in range(3):
-        lo = int(sampling.break_index[a][cell.index[a]])
-        hi = int(sampling.break_index[a][cell.index[a] + 1])
-        rng.append(np.arange(lo, hi + 1))
-    for a in range(3):
-        b, c = _others(a)
-        eps = 1e-10 * (sampling.domain[1][a] - sampling.domain[0][a])
-        for side, i in ((0, rng[a][0]), (1, rng[a][-1])):
-            on = np.abs(q[:, a] - sampling.params[a][i]) <= eps
-            if not np.any(on):
-                continue
-            mask[on] |= 1 << (2 * a + side)
-            todo = on & np.isnan(xyz[:, 0])
-            if not np.any(todo):
-                continue
-            _, _, pos, main = _face_quads(grid, a, int(i), rng[b], rng[c])
-            pb, pc = sampling.params[b][rng[b]], sampling.params[c][rng[c]]
-            x, y = q[todo, b], q[todo, c]
-            ib = np.clip(np.searchsorted(pb, x) - 1, 0, len(pb) - 2)
-            ic = np.clip(np.searchsorted(pc, y) - 1, 0, len(pc) - 2)
-            s = np.clip((x - pb[ib]) / (pb[ib + 1] - pb[ib]), 0, 1)
-            t = np.clip((y - pc[ic]) / (pc[ic + 1] - pc[ic]), 0, 1)
-            p00, p10 = pos[ib, ic], pos[ib + 1, ic]
-            p01, p11 = pos[ib, ic + 1], pos[ib + 1, ic + 1]
-            m = main[ib, ic][:, None]
-            s, t = s[:, None], t[:, None]
-            # main diagonal 00-11: below it (s >= t) triangle (00, 10, 11), above it (00, 11, 01)
-            lower = np.where(s >= t, p00 + s * (p10 - p00) + t * (p11 - p10), p00 + t * (p01 - p00) + s * (p11 - p01))
-            # anti diagonal 10-01: (00, 10, 01) where s + t <= 1, else (10, 11, 01)
-            anti = np.where(s + t <= 1, p00 + s * (p10 - p00) + t * (p01 - p00),
-                            p11 + (1 - s) * (p01 - p11) + (1 - t) * (p10 - p11))
-            xyz[todo] = np.where(m, lower, anti)
-    return xyz, mask
+def _on_face_positions(q, todo, face_bit, uvw, ids, tris, bits, xyz_all):
+    """Points q[todo] on one box face -> their positions on the face's tessellation (piecewise linear in its
+    parameters), so that a face cut by a domain pin or hole still lies exactly on the cut surface the neighbour sees."""
+    a = face_bit // 2
+    b, c = _others(a)
+    on = (bits & (1 << face_bit)) != 0
+    ft = tris[np.all(on[tris], axis=1)]
+    p = q[todo][:, [b, c]]
+    t0, t1, t2 = (uvw[ft[:, k]][:, [b, c]] for k in range(3))
+    d1, d2 = t1 - t0, t2 - t0
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    out = np.empty((len(p), 3))
+    for i0 in range(0, len(p), 256):
+        pp = p[i0:i0 + 256, None, :] - t0[None]
+        l1 = (pp[..., 0] * d2[:, 1] - pp[..., 1] * d2[:, 0]) / det
+        l2 = (d1[:, 0] * pp[..., 1] - d1[:, 1] * pp[..., 0]) / det
+        l0 = 1.0 - l1 - l2
+        worst = np.minimum(np.minimum(l0, l1), l2)  # >= 0 inside; the largest is the containing triangle
+        k = np.argmax(worst, axis=1)
+        r = np.arange(len(k))
+        lam = np.clip(np.stack([l0[r, k], l1[r, k], l2[r, k]], 1), 0.0, 1.0)
+        lam /= lam.sum(axis=1, keepdims=True)
+        out[i0:i0 + 256] = np.einsum("nk,nkd->nd", lam, xyz_all[ids[ft[k]]])
+    return out
 
 
-def _domain_body(cell, sampling, fmap, grid, dpins, dholes, what):
-    """Booleans in parameter space on the cell's own grid, then the vertices mapped through F with the new
-    triangles off the box faces split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
-    idx3, _ = _cell_boundary(cell, sampling, grid)
-    own_keys = np.ravel_multi_index(tuple(idx3.reshape(-1, 3).T), grid.n)
-    uniq, inv = np.unique(own_keys, return_inverse=True)
-    own_idx = np.stack(np.unravel_index(uniq, grid.n), axis=1)
-    uvw = np.stack([sampling.params[a][own_idx[:, a]] for a in range(3)], axis=1)
-    body = geometry.manifold_from_mesh(uvw, inv.reshape(-1, 3), f"{what} (parameter box)")
+def _domain_body(cell, sampling, fmap, dpins, dholes, what):
+    """Booleans in parameter space on the cell's own tessellated box, then the vertices mapped through F with the
+    new triangles off the box faces split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
+    uvw, ids, tris, bits = cell_parameter_mesh(cell, sampling)
+    body = geometry.manifold_from_mesh(uvw, tris, f"{what} (parameter box)")
     body = _apply(body, dpins, dholes, f"{what} (in the domain)")
     out = geometry.to_trimesh(body)
     q = np.asarray(out.vertices, dtype=float)
     f = np.asarray(out.faces, dtype=np.int64)
-    xyz, mask = _face_positions(cell, sampling, grid, q)
-    # grid vertices keep their exact parameters through the engine; they take the shared, canonical positions
-    on = np.ones(len(q), dtype=bool)
-    gi = np.empty((len(q), 3), dtype=np.int64)
+    box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
+    tol = 1e-10 * (box[1] - box[0])
+    mask = np.zeros(len(q), dtype=np.int64)
     for a in range(3):
-        p = sampling.params[a]
-        k = np.clip(np.searchsorted(p, q[:, a]), 0, len(p) - 1)
-        on &= p[k] == q[:, a]
-        gi[:, a] = k
-    on &= mask != 0
-    if np.any(on):
-        xyz[on] = grid.positions(grid.canonical(gi[on]))
+        mask[np.abs(q[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
+        mask[np.abs(q[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
+    xyz = np.full(q.shape, np.nan)
+    # the box's own points keep their exact parameters through the engine, and take the shared positions
+    where = {p.tobytes(): i for p, i in zip(uvw, ids)}
+    for r in np.flatnonzero(mask):
+        i = where.get(q[r].tobytes())
+        if i is not None:
+            xyz[r] = sampling.xyz[i]
+    for bit in range(6):
+        todo = ((mask & (1 << bit)) != 0) & np.isnan(xyz[:, 0])
+        if np.any(todo):
+            xyz[todo] = _on_face_positions(q, todo, bit, uvw, ids, tris, bits, sampling.xyz)
     off = np.isnan(xyz[:, 0])
     if np.any(off):
         xyz[off] = fmap.evaluate(_wrap(q[off], sampling))
@@ -596,16 +902,16 @@ def _refine(q, xyz, f, mask, evaluate, target):
 
 def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None):
     """One cell -> Piece: its body through F, pins united and holes subtracted (in mm, or in the domain for
-    joints with space 'domain'); checked to be one closed solid with outward normals."""
+    joints with space 'domain'); checked to be one closed solid with outward normals. (grid: unused, kept for
+    callers of the earlier signature.)"""
     what = what or cell.id
-    grid = grid if grid is not None else _grid_for(sampling, fmap)
     index = tuple(cell.index)
-    verts, faces = cell_surface(cell, sampling, fmap, grid)
+    verts, faces = cell_surface(cell, sampling, fmap)
     body = geometry.manifold_from_mesh(verts, faces, what)
     body_volume = float(body.volume())
     pins, holes, dpins, dholes = _joint_solids(joints, index)
     if dpins or dholes:
-        v2, f2 = _domain_body(cell, sampling, fmap, grid, dpins, dholes, what)
+        v2, f2 = _domain_body(cell, sampling, fmap, dpins, dholes, what)
         body = geometry.manifold_from_mesh(v2, f2, f"{what} (mapped from the domain)")
     body = _apply(body, pins, holes, what)
     parts = body.decompose()
@@ -623,15 +929,14 @@ def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None):
 _WORKER = {}
 
 
-def _init_worker(tiling, sampling, fmap, joints, grid=None):
-    grid = grid if grid is not None else _grid_for(sampling, fmap)
-    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints, grid=grid)
+def _init_worker(tiling, sampling, fmap, joints):
+    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints)
 
 
 def _build_in_worker(index):
     w = _WORKER
     t0 = time.perf_counter()
-    p = build_piece(w["tiling"].cell(index), w["tiling"], w["sampling"], w["fmap"], w["joints"], grid=w["grid"])
+    p = build_piece(w["tiling"].cell(index), w["tiling"], w["sampling"], w["fmap"], w["joints"])
     # plain arrays travel between processes more cheaply and predictably than trimesh objects
     return (p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume, p.body_volume,
             time.perf_counter() - t0)
@@ -651,16 +956,24 @@ class Pieces(list):
     seconds = None
 
 
+def _use_pool(jobs, n, sampling, joints):
+    """A pool only pays when there is enough work: many pieces, and many triangles or booleans to share out."""
+    if jobs is None or jobs <= 1 or n <= 1 or n < _POOL_MIN_PIECES:
+        return False
+    work = 2 * sampling.counts[1] + 20000 * len(joints)  # a joint's booleans cost about this many triangles
+    return work >= _POOL_MIN_TRIANGLES
+
+
 def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None):
     """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
-    pool (same results as jobs=1); progress(i, n, piece_id) is called as pieces finish. Pass `sampling` to reuse one
+    pool when the work is large enough to pay for one (same results as jobs=1); progress(i, n, piece_id) is called as pieces finish. Pass `sampling` to reuse one
     from sample_parameters."""
     sampling = sampling if sampling is not None else sample_parameters(tiling, fmap, tolerance)
     order = sorted(tiling.cells)
     n = len(order)
     joints = list(joints or [])
     recs = {}
-    if jobs is None or jobs <= 1 or n <= 1:
+    if not _use_pool(jobs, n, sampling, joints):
         _init_worker(tiling, sampling, fmap, joints)
         try:
             for k, index in enumerate(order):
@@ -672,8 +985,7 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
     else:
         ctx = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(max_workers=int(jobs), mp_context=ctx, initializer=_init_worker,
-                                                    initargs=(tiling, sampling, fmap, joints,
-                                                              _grid_for(sampling, fmap).fill())) as pool:
+                                                    initargs=(tiling, sampling, fmap, joints)) as pool:
             futures = {pool.submit(_build_in_worker, index): index for index in order}
             for k, fut in enumerate(concurrent.futures.as_completed(futures)):
                 try:
