@@ -142,8 +142,9 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
                 and (tuple(f.lower) in mv or tuple(f.lower) in fixed)
                 and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
 
-    def choose(cands, axis, sign, lo_cells):
-        """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known."""
+    def choose(cands, axis, sign, lo_cells, moving=(), prefer_seam=False):
+        """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known.
+        Normals are compared as seen from the fixed block (a seam face has the moving block on its lower side)."""
         if not cands:
             return []
         mids = []
@@ -154,10 +155,16 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             mids.append(sum(abs(c[x] - lo_cells[x]) for x in others))
         normals, area = _face_normals(tiling, fmap, cands)
         if normals is None:
-            best = int(np.argmin(mids))
+            key = [(-(prefer_seam and faces[n].seam is not None), m) for n, m in zip(cands, mids)]
+            best = min(range(len(cands)), key=lambda k: key[k])
             return [cands[best]]
-        # the widest face, ties to the middle: a collapsed face (a pole) cannot hold a pin
-        score = area / max(float(area.max()), 1e-300) - 1e-3 * np.array(mids)
+        mv = set(moving)
+        flip = np.array([-1.0 if tuple(faces[n].lower) in mv else 1.0 for n in cands])
+        normals = normals * flip[:, None]
+        # the widest face, ties to the middle: a collapsed face (a pole) cannot hold a pin. On a ring the seam is
+        # preferred, so that the joints cross it as the paper's periodic puzzles do.
+        seam = np.array([faces[n].seam is not None for n in cands], float)
+        score = area / max(float(area.max()), 1e-300) - 1e-3 * np.array(mids) + (0.5 * seam if prefer_seam else 0.0)
         best = int(np.argmax(score))
         ok = [n for k, n in enumerate(cands)
               if area[k] > 0.25 * area[best] and float(normals[k] @ normals[best]) >= cos_max]
@@ -175,9 +182,9 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             p = grid[a] // 2
             fixed = [c for c in cells if c[a] < p]
             moving = [c for c in cells if c[a] >= p]
-            cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None and faces[n].axis == a]
+            cand = [n for n in crossing(moving, set(fixed)) if faces[n].axis == a]
             mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
-            chosen = choose(cand, a, +1, mid_lo)
+            chosen = choose(cand, a, +1, mid_lo, moving, prefer_seam=True)
             jointed.extend(chosen)
             split(fixed, open_axes | {a})
             split(moving, open_axes | {a})
