@@ -254,16 +254,18 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
+        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
         with timer("check", progress):
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected)
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
     else:
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
     for attempt in range(3 if mesh_report is None else 0):
         with timer("compose", progress):
             pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs, progress=progress.piece)
+        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
         with timer("check", progress):
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected)
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
         deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                         and checks["volume_error"] < -0.005)
         if checks["passed"] or not deficit_only or attempt == 2:
@@ -272,6 +274,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         # upper bound, so tessellating finer still honours it while making the volumes add up.
         tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
     checks["joint_gaps_mm3"] = round(gaps, 3)
+    checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
     sampling = getattr(pieces, "sampling", None)
     if sampling is not None:
@@ -294,6 +297,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     for p in pieces:
         entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
         entry["plate"] = plate_of.get(p.id)
+        entry["label"] = labels.get(p.id)
         entries.append(entry)
     report = {
         "volpuzzle_version": __version__,
@@ -369,6 +373,34 @@ def _assembly(plan, pieces, joints, timer, progress):
               file=sys.stderr)
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
+
+
+def _label(spec, stages, pieces, joints, timer, progress):
+    """Engrave each piece's id on an inner face no joint uses. -> (pieces, {id: label report or None}, mm^3 removed)"""
+    import dataclasses
+
+    from .geometry import from_trimesh, to_trimesh
+    from .label import label_piece
+
+    if not spec.output.labels:
+        return pieces, {}, 0.0
+    tiling, fmap = stages["tiling"], stages["fmap"]
+    out, sites, removed = [], {}, 0.0
+    with timer("label", progress):
+        for p in pieces:
+            body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints, what=p.id)
+            if site is None:
+                sites[p.id] = None
+                out.append(p)
+                continue
+            mesh = to_trimesh(body)
+            removed += p.volume - float(mesh.volume)
+            sites[p.id] = site.to_report()
+            out.append(dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))))
+    if hasattr(pieces, "sampling"):
+        out = type(pieces)(out)
+        out.sampling, out.seconds = pieces.sampling, getattr(pieces, "seconds", None)
+    return out, sites, removed
 
 
 def _pid(index):
