@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 SPECS := $(wildcard specs/*.yaml)
 OUTS := $(patsubst specs/%.yaml,out/%/report.json,$(SPECS))
 
-.PHONY: setup demo test paper bench models clean
+.PHONY: setup demo test paper bench models slicer-check clean
 .DELETE_ON_ERROR:
 
 $(VENV)/.installed: pyproject.toml
@@ -34,6 +34,12 @@ bench: setup
 
 models: setup
 	$(PY) scripts/make_models.py
+
+# A real slicer as a test: installs PrusaSlicer from Debian's packages when missing (needs root and apt).
+slicer-check: out/quarter-torus/report.json
+	@command -v prusa-slicer >/dev/null || (apt-get install -y prusa-slicer >/dev/null 2>&1 || \
+		(apt-get update >/dev/null 2>&1 && apt-get install -y prusa-slicer >/dev/null))
+	$(PY) scripts/slicer_check.py out/quarter-torus
 
 clean:
 	rm -rf out
