@@ -124,3 +124,28 @@ def test_a_joint_with_no_room_is_dropped():
     kept, records = keep_joints_inside([joint([0, 0, 0])], slab, wall=1.5)
     assert kept == [] and records == [{"pin_piece": "p0-0-0", "hole_piece": "p1-0-0", "action": "dropped",
                                        "distance": 0.0}]
+
+
+def test_a_part_meeting_its_neighbour_only_along_an_edge_is_refused(monkeypatch):
+    # A union across an edge contact is non-manifold: no slicer takes it, so the merge must not make it. The contact
+    # score is forced, as on a sphere cage where parts meet along lines that the axis shifts do pick up.
+    import volpuzzle.meshcut as meshcut
+
+    monkeypatch.setattr(meshcut, "_touch", lambda frag, other, grow: 1.0)
+    big = manifold3d.Manifold.cube([10.0, 10.0, 10.0])
+    tiny = manifold3d.Manifold.cube([0.5, 0.5, 10.0]).translate([10.0, 10.0, 0.0])
+    with pytest.raises(GeometryError, match="only along an edge or at a point"):
+        merge_fragments({"p0-0-0": big, "p1-1-0": tiny})
+
+
+def test_small_pieces_merge_one_at_a_time_so_neighbours_of_small_pieces_still_count():
+    # Three small slabs in a row beside a big block (widths exact in binary, so faces coincide exactly); the last
+    # slab touches only the middle one, which was small itself.
+    block = manifold3d.Manifold.cube([10.0, 10.0, 10.0])
+    slabs = {f"p{i}-0-0": manifold3d.Manifold.cube([0.25, 10.0, 10.0]).translate([10.0 + 0.25 * (i - 1), 0, 0])
+             for i in (1, 2, 3)}
+    out, records = merge_fragments({"p0-0-0": block, **slabs}, min_fraction=0.2)
+    assert list(out) == ["p0-0-0"]
+    assert abs(out["p0-0-0"].volume() - 1075.0) < 1e-6
+    assert len(out["p0-0-0"].decompose()) == 1
+    assert [r["reason"] for r in records] == ["small piece"] * 3

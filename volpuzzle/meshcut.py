@@ -80,22 +80,39 @@ def merge_fragments(pieces, min_fraction=0.05, grow=None):
         bodies = sorted(bodies, key=lambda b: -b.volume())
         pieces[pid] = bodies[0]
         loose += [(pid, b, "fragment") for b in bodies[1:]]
-    # pieces too small to print on their own go whole (the smallest first, and one at a time: a small piece may
-    # receive a fragment and grow past the limit)
-    mean = sum(p.volume() for p in pieces.values()) / len(pieces)
-    for pid in sorted(pieces, key=lambda k: pieces[k].volume()):
-        if len(pieces) > 1 and pieces[pid].volume() < min_fraction * mean:
-            loose.append((pid, pieces.pop(pid), "small piece"))
-    for src, body, reason in loose:
+    from .check import closed_problem
+    from .geometry import to_trimesh
+
+    def give_away(src, body, reason):
         scores = {pid: _touch(body, other, grow) for pid, other in pieces.items() if pid != src}
-        best = max(scores, key=lambda k: (scores[k], k)) if scores else None
-        if best is None or scores[best] <= 0:
+        ranked = sorted((k for k in scores if scores[k] > 0), key=lambda k: (-scores[k], k))
+        if not ranked:
             raise GeometryError(
                 f"{src}: a {reason} of {body.volume():.4g} mm^3 touches no other piece, so it cannot be merged "
                 "(the mesh has a part that lies in one cell alone; use a finer grid or model.repair)")
-        merged = _check(pieces[best] + body, best, f"merging a {reason} of {src}")
+        for best in ranked:
+            merged = _check(pieces[best] + body, best, f"merging a {reason} of {src}")
+            # A part that meets this neighbour only along an edge or at a point (all cells of a sphere cage meet at
+            # its centre) would weld into a non-manifold solid no slicer accepts: try the next neighbour.
+            if len(merged.decompose()) == 1 and closed_problem(to_trimesh(merged)) is None:
+                break
+        else:
+            raise GeometryError(
+                f"{src}: a {reason} of {body.volume():.4g} mm^3 meets its neighbours ({', '.join(ranked)}) only along "
+                "an edge or at a point, so merging it would not give one closed solid (use a different grid or cage)")
         pieces[best] = merged
         records.append({"from": src, "to": best, "volume_mm3": float(body.volume()), "reason": reason})
+
+    for src, body, reason in loose:
+        give_away(src, body, reason)
+    # Pieces too small to print on their own go whole, the smallest first and one at a time, so that a small piece
+    # still finds its face neighbours (which may be small too, and grow by taking it).
+    mean = sum(p.volume() for p in pieces.values()) / len(pieces)
+    while len(pieces) > 1:
+        pid = min(pieces, key=lambda k: (pieces[k].volume(), k))
+        if pieces[pid].volume() >= min_fraction * mean:
+            break
+        give_away(pid, pieces.pop(pid), "small piece")
     return pieces, records
 
 
