@@ -223,6 +223,29 @@ def _face_params(key, breaks, st):
     return uvw
 
 
+def _off_chord(d, chord):
+    """Distance (m, k) of points from their chord, given their offsets d (m, k, 3) from points on it and the chords
+    (m, 3): only the part across the chord counts (sliding along it is a change of parameter, not of shape)."""
+    n = np.linalg.norm(chord, axis=1, keepdims=True)
+    u = np.divide(chord, n, out=np.zeros_like(chord), where=n > 0)
+    along = np.einsum("mkd,md->mk", d, u)
+    return np.sqrt(np.maximum(np.einsum("mkd,mkd->mk", d, d) - along ** 2, 0.0))
+
+
+def _deviation(d, corners):
+    """Distance (m, k) of points from their triangles' planes, given their offsets d (m, k, 3) from the linear
+    interpolant and the triangles' corners (m, 3, 3) in mm; a degenerate triangle (on a collapsed axis) counts the
+    whole offset."""
+    n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    size = np.linalg.norm(n, axis=1)
+    scale = np.max(np.linalg.norm(corners - corners[:, :1], axis=2), axis=1)
+    flat = size <= 1e-9 * scale ** 2
+    n = np.divide(n, size[:, None], out=np.zeros_like(n), where=~flat[:, None])
+    out = np.abs(np.einsum("mkd,md->mk", d, n))
+    out[flat] = np.linalg.norm(d[flat], axis=2)
+    return out
+
+
 def _sample_edges(keys, breaks, fmap, target, tolerance):
     """Bisect every edge's intervals (all edges in one batch per round) until F's chord error at the quarter
     points and the midpoint is at most target. -> ({key: sorted fractions (k,)}, {key: xyz (k, 3)}, worst)."""
@@ -255,7 +278,7 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
         uvw = np.concatenate([_edge_params(k, breaks, q[i]) for i, k in enumerate(key_of)])
         xq = fmap.evaluate(uvw).reshape(len(ie), 3, 3)
         lin = x0[:, None, :] + fr[None, :, None] * (x1 - x0)[:, None, :]
-        err = np.linalg.norm(xq - lin, axis=2).max(axis=1)
+        err = _off_chord(xq - lin, x1 - x0).max(axis=1)
         bad = err > target
         good = ~bad
         if np.any(good):
@@ -432,44 +455,6 @@ class _FaceWork:
         raise GeometryError(f"compose: could not triangulate the {AXES[self.key[0]]} face at grid {self.key[1:]} "
                             f"with {n} points (internal error)")
 
-    def measure_points(self):
-        """-> st of centroids (m, 2), interior edge midpoints (e, 2), two random points per triangle (2m, 2),
-        with their linear (tessellated) xyz, and the edges (e, 2) and triangle-edge indices (m, 3)."""
-        tri, st, x, nb = self.tris, self.st, self.xyz, self.nb
-        m = len(tri)
-        e_all = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
-        edges, inv = np.unique(e_all, axis=0, return_inverse=True)
-        inv = inv.reshape(3, m).T
-        d = (edges[:, 1] - edges[:, 0]) % nb
-        boundary = (edges[:, 1] < nb) & ((d == 1) | (d == nb - 1))
-        lam = self.rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
-        pts = [st[tri].mean(axis=1), 0.5 * (st[edges[:, 0]] + st[edges[:, 1]]),
-               np.einsum("mkj,mjd->mkd", lam, st[tri]).reshape(-1, 2)]
-        lin = [x[tri].mean(axis=1), 0.5 * (x[edges[:, 0]] + x[edges[:, 1]]),
-               np.einsum("mkj,mjd->mkd", lam, x[tri]).reshape(-1, 3)]
-        self._meas = (edges, inv, boundary, lin)
-        return np.concatenate(pts)
-
-    def update(self, xyz_measured, target, tolerance):
-        """Given F at measure_points(): insert points where the tessellation misses F. -> True when done."""
-        edges, inv, boundary, lin = self._meas
-        m, ne = len(self.tris), len(edges)
-        xc, xm, xr = xyz_measured[:m], xyz_measured[m:m + ne], xyz_measured[m + ne:]
-        ec = np.linalg.norm(xc - lin[0], axis=1)
-        em = np.linalg.norm(xm - lin[1], axis=1)
-        em[boundary] = 0.0  # fitted along the edge already; the boundary must stay as the neighbours see it
-        er = np.linalg.norm(xr - lin[2], axis=1).reshape(m, 2).max(axis=1)
-        bad_edge = em > target
-        bad_tri = ((ec > target) | (er > tolerance)) & ~np.any(bad_edge[inv], axis=1)
-        if not np.any(bad_edge) and not np.any(bad_tri):
-            self.worst = float(max(ec.max(initial=0), em.max(initial=0), er.max(initial=0)))
-            return True
-        pts_c = self.st[self.tris[bad_tri]].mean(axis=1)
-        pts_m = 0.5 * (self.st[edges[bad_edge, 0]] + self.st[edges[bad_edge, 1]])
-        self.st = np.concatenate([self.st, pts_c, pts_m])
-        self.xyz = np.concatenate([self.xyz, xc[bad_tri], xm[bad_edge]])
-        return False
-
 
 def _face_lengths(x5):
     """F on a (5, 5) grid of a face (i along s, j along t) -> mean lengths along s and t, collapsed along s / t."""
@@ -617,38 +602,142 @@ def sample_parameters(tiling, fmap, tolerance):
 
 
 def _refine_faces(works, breaks, fmap, target, tolerance):
-    """Refine all faces together, one batched evaluation of F per round. -> the largest error measured."""
-    new = [w for w in works if np.isnan(w.xyz).any()]
-    if new:
-        pts = [w.st[np.isnan(w.xyz[:, 0])] for w in new]
-        x = fmap.evaluate(np.concatenate([_face_params(w.key, breaks, p) for w, p in zip(new, pts)]))
-        pos = 0
-        for w, p in zip(new, pts):
-            w.xyz[np.isnan(w.xyz[:, 0])] = x[pos:pos + len(p)]
-            pos += len(p)
-    active = list(works)
-    for _ in range(_ROUNDS):
-        if not active:
+    """Refine every face from its initial Delaunay triangulation, all faces in one batch per round: triangles whose
+    tessellation misses F (at the centroid, the interior edge midpoints and two random points) by more than target
+    have their longest interior edge bisected, with the longest-edge closure of Rivara so that triangles stay well
+    shaped and the mesh conforming. Boundary segments are never split: they are the neighbours' edges.
+    Sets each work's st, xyz and tris. -> the largest error measured on the final triangles."""
+    if not works:
+        return 0.0
+    for w in works:
+        w.triangulate()
+    sizes = np.array([len(w.st) for w in works])
+    off = np.concatenate([[0], np.cumsum(sizes)])
+    st = np.concatenate([w.st for w in works])
+    xyz = np.concatenate([w.xyz for w in works])
+    fid = np.repeat(np.arange(len(works)), sizes)
+    tris = np.concatenate([w.tris + off[k] for k, w in enumerate(works)])
+    big = np.int64(1) << 31
+    bkeys = []
+    for k, w in enumerate(works):
+        i = np.arange(w.nb)
+        e = np.sort(np.stack([i, (i + 1) % w.nb], 1), axis=1) + off[k]
+        bkeys.append(e[:, 0] * big + e[:, 1])
+    bkeys = np.sort(np.concatenate(bkeys))
+    # per face: uvw = base + s ds + t dt
+    base = np.zeros((len(works), 3))
+    ds = np.zeros((len(works), 3))
+    dt = np.zeros((len(works), 3))
+    for k, w in enumerate(works):
+        a, g = w.key[0], w.key[1:]
+        b, c = _others(a)
+        base[k] = [breaks[x][g[x]] for x in range(3)]
+        ds[k, b] = breaks[b][g[b] + 1] - breaks[b][g[b]]
+        dt[k, c] = breaks[c][g[c] + 1] - breaks[c][g[c]]
+
+    axes = np.array([_others(w.key[0]) for w in works])
+
+    def params(p, f):
+        return base[f] + p[:, :1] * ds[f] + p[:, 1:] * dt[f]
+
+    rng = np.random.default_rng(20250101)
+    err = np.full(len(tris), np.nan)
+    for _ in range(4 * _ROUNDS):
+        todo = np.isnan(xyz[:, 0])
+        if np.any(todo):
+            xyz[todo] = fmap.evaluate(params(st[todo], fid[todo]))
+        e = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], 1)  # (m, 3, 2)
+        es = np.sort(e, axis=2)
+        keys = es[..., 0] * big + es[..., 1]
+        pos = np.clip(np.searchsorted(bkeys, keys), 0, len(bkeys) - 1)
+        interior = bkeys[pos] != keys
+        new = np.flatnonzero(np.isnan(err))
+        if len(new):
+            tn = tris[new]
+            m = len(new)
+            lam = rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
+            w3 = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
+                                 np.broadcast_to(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), (m, 3, 3))],
+                                axis=1)  # (m, 6, 3): centroid, 2 random, 3 edge midpoints
+            pts = np.einsum("mkj,mjd->mkd", w3, st[tn]).reshape(-1, 2)
+            lin = np.einsum("mkj,mjd->mkd", w3, xyz[tn])
+            f_new = fid[tn[:, 0]]
+            got = fmap.evaluate(params(pts, np.repeat(f_new, 6))).reshape(m, 6, 3)
+            d = _deviation(got - lin, xyz[tn])
+            d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
+            err[new] = d.max(axis=1)
+            # a triangle turned against the surface folds the mesh (the across-only measure cannot see that):
+            # its normal must stay within 60 degrees of F's at the centroid
+            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], f_new))
+            ax = axes[f_new]
+            n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
+            c = xyz[tn]
+            n_t = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+            norms = np.linalg.norm(n_s, axis=1) * np.linalg.norm(n_t, axis=1)
+            scale = np.max(np.linalg.norm(c - c[:, :1], axis=2), axis=1)
+            real = (np.linalg.norm(n_t, axis=1) > 1e-9 * scale ** 2) & (norms > 0)
+            cos = np.einsum("md,md->m", n_s, n_t) / np.where(norms > 0, norms, 1.0)
+            turned = real & (cos < 0.5)
+            err[new[turned]] = np.maximum(err[new[turned]], 2 * target + 1.0)
+        bad = err > target
+        if not np.any(bad):
             break
-        pts = []
-        for w in active:
-            w.triangulate()
-            pts.append(w.measure_points())
-        x = fmap.evaluate(np.concatenate([_face_params(w.key, breaks, p) for w, p in zip(active, pts)]))
-        pos = 0
-        still = []
-        for w, p in zip(active, pts):
-            if not w.update(x[pos:pos + len(p)], target, tolerance):
-                still.append(w)
-                if len(w.st) > _MAX_FACE_POINTS:
-                    raise GeometryError(
-                        f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points on one cell "
-                        f"face (got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
-            pos += len(p)
-        active = still
-    if active:
-        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {_ROUNDS} rounds")
-    return max((w.worst for w in works), default=0.0)
+        if len(st) > _MAX_FACE_POINTS * max(1, len(works) // 4):
+            raise GeometryError(
+                f"output.tolerance: {tolerance:g} mm needs more than {len(st)} points on the cell faces "
+                f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
+        length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
+        # ties by parameter length, then by position in the triangle: deterministic
+        plen = np.linalg.norm(st[e[..., 0]] - st[e[..., 1]], axis=2)
+        score = np.where(interior, length + 1e-9 * plen, -1.0)
+        longest = np.argmax(score, axis=1)
+        rows = np.arange(len(tris))
+        split = np.unique(keys[rows[bad], longest[bad]])
+        while True:
+            has = np.isin(keys, split)
+            need = np.any(has, axis=1) & ~has[rows, longest]
+            if not np.any(need):
+                break
+            split = np.union1d(split, keys[rows[need], longest[need]])
+        # new midpoints
+        lo, hi = split // big, split % big
+        mid = len(st) + np.arange(len(split))
+        st = np.concatenate([st, 0.5 * (st[lo] + st[hi])])
+        xyz = np.concatenate([xyz, np.full((len(split), 3), np.nan)])
+        fid = np.concatenate([fid, fid[lo]])
+        has = np.isin(keys, split)
+        touched = np.any(has, axis=1)
+        t = tris[touched]
+        r = longest[touched]
+        k = keys[touched]
+        h = has[touched]
+        n = len(t)
+        idx = np.arange(n)
+        v0, v1, v2 = t[idx, r], t[idx, (r + 1) % 3], t[idx, (r + 2) % 3]
+        ml = mid[np.searchsorted(split, k[idx, r])]
+        h1, h2 = h[idx, (r + 1) % 3], h[idx, (r + 2) % 3]
+        m1 = np.where(h1, mid[np.clip(np.searchsorted(split, k[idx, (r + 1) % 3]), 0, len(split) - 1)], -1)
+        m2 = np.where(h2, mid[np.clip(np.searchsorted(split, k[idx, (r + 2) % 3]), 0, len(split) - 1)], -1)
+        out = [np.stack([v0, ml, v2], 1)[~h2], np.stack([v0, ml, m2], 1)[h2], np.stack([ml, v2, m2], 1)[h2],
+               np.stack([ml, v1, v2], 1)[~h1], np.stack([ml, v1, m1], 1)[h1], np.stack([ml, m1, v2], 1)[h1]]
+        tris = np.concatenate([tris[~touched]] + out)
+        err = np.concatenate([err[~touched], np.full(sum(len(o) for o in out), np.nan)])
+    else:
+        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * _ROUNDS} rounds")
+    # back to the faces, in a fixed order
+    tf = fid[tris[:, 0]]
+    order = np.argsort(tf, kind="stable")
+    tris, tf = tris[order], tf[order]
+    tsplit = np.searchsorted(tf, np.arange(len(works) + 1))
+    pf_order = np.argsort(fid, kind="stable")
+    local = np.empty(len(st), dtype=np.int64)
+    psplit = np.searchsorted(fid[pf_order], np.arange(len(works) + 1))
+    for k, w in enumerate(works):
+        pts = pf_order[psplit[k]:psplit[k + 1]]  # the face's points: its first ones, then its midpoints in order
+        local[pts] = np.arange(len(pts))
+        w.st, w.xyz = st[pts], xyz[pts]
+        w.tris = local[tris[tsplit[k]:tsplit[k + 1]]]
+    return float(np.max(err, initial=0.0))
 
 
 # ------------------------------------------------------------------------------------------------------------
