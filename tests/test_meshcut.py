@@ -144,7 +144,7 @@ def test_small_pieces_merge_one_at_a_time_so_neighbours_of_small_pieces_still_co
     block = manifold3d.Manifold.cube([10.0, 10.0, 10.0])
     slabs = {f"p{i}-0-0": manifold3d.Manifold.cube([0.25, 10.0, 10.0]).translate([10.0 + 0.25 * (i - 1), 0, 0])
              for i in (1, 2, 3)}
-    out, records = merge_fragments({"p0-0-0": block, **slabs}, min_fraction=0.2)
+    out, records = merge_fragments({"p0-0-0": block, **slabs}, min_fraction=0.5)
     assert list(out) == ["p0-0-0"]
     assert abs(out["p0-0-0"].volume() - 1075.0) < 1e-6
     assert len(out["p0-0-0"].decompose()) == 1
