@@ -123,7 +123,7 @@ def layout(parts, plate, spacing, pin_directions=None):
         oriented.append(place)
         extents.append(ext)
         hull2d = trimesh.transform_points(mesh.convex_hull.vertices, place)[:, :2]
-        areas.append(float(trimesh.path.polygons.Polygon(hull2d[_hull_order(hull2d)]).area))
+        areas.append(_hull_area(hull2d))
     extents = np.array(extents)
     fits = np.all(np.sort(extents, axis=1)[:, ::-1] <= np.sort(plate)[::-1] + 1e-9, axis=1)
     if not fits.all():
@@ -153,7 +153,8 @@ def layout(parts, plate, spacing, pin_directions=None):
     return placements, plates
 
 
-def _hull_order(points):
+def _hull_area(points):
+    """Area of the 2D convex hull of (n, 2) points (scipy calls a 2D hull's area its volume)."""
     from scipy.spatial import ConvexHull
 
-    return ConvexHull(points).vertices
+    return float(ConvexHull(points).volume)
