@@ -105,7 +105,8 @@ def test_folding_model_refused_without_output(tmp_path):
 
     g = np.linspace(0, 10, 4)
     cp = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
-    cp[1, 1, 1, 0] = 25.0  # drags an interior point past its neighbours: det J changes sign
+    # Drags an interior point far past its neighbours: dx/du >= 10 - 90 * max|B1'| * B1(v) * B1(w) < 0 near it.
+    cp[1, 1, 1, 0] = 100.0
     k = [0, 0, 0, 0, 1, 1, 1, 1]
     save_model(Volume((3, 3, 3), (k, k, k), cp), tmp_path / "fold.json")
     spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": "fold.json"}))

@@ -388,9 +388,15 @@ def _label(spec, stages, pieces, joints, timer, progress):
     out, sites, removed = [], {}, 0.0
     with timer("label", progress):
         for p in pieces:
-            body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints, what=p.id)
+            try:
+                body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+                                         what=p.id)
+            except GeometryError as e:
+                # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
+                body, site = None, None
+                sites[p.id] = {"skipped": str(e)}
             if site is None:
-                sites[p.id] = None
+                sites.setdefault(p.id, None)
                 out.append(p)
                 continue
             mesh = to_trimesh(body)
