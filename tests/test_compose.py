@@ -265,7 +265,7 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
 
 def test_pool_gives_the_same_pieces(monkeypatch):
     monkeypatch.setattr(C, "_POOL_MIN_PIECES", 0)
-    monkeypatch.setattr(C, "_POOL_MIN_TRIANGLES", 0)
+    monkeypatch.setattr(C, "_POOL_MIN_SECONDS", 0.0)
     vol, t, fmap, sampling, pieces = _built("twisted")
     seen = []
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
