@@ -237,8 +237,8 @@ def _off_chord(d, chord):
 
 def _deviation(d, corners):
     """Distance (m, k) of points from their triangles' planes, given their offsets d (m, k, 3) from the linear
-    interpolant and the triangles' corners (m, 3, 3) in mm; a degenerate triangle (on a collapsed axis) counts the
-    whole offset."""
+    interpolant and the triangles' corners (m, 3, 3) in mm: only the part across the surface counts (sliding along
+    it is a change of parameter, not of shape). A degenerate triangle (on a collapsed axis) counts the whole offset."""
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     size = np.linalg.norm(n, axis=1)
     scale = np.max(np.linalg.norm(corners - corners[:, :1], axis=2), axis=1)
@@ -669,8 +669,8 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
             d = _deviation(got - lin, xyz[tn])
             d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
             err[new] = d.max(axis=1)
-            # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that).
-            # Only a real turn counts: slivers along a curved boundary segment lean a lot and cannot be helped
+            # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
+            # splitting mends it inside the face (next to a fixed boundary segment it would only make slivers)
             _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], f_new))
             ax = axes[f_new]
             n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
@@ -680,7 +680,7 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
             scale = np.max(np.linalg.norm(c - c[:, :1], axis=2), axis=1)
             real = (np.linalg.norm(n_t, axis=1) > 1e-9 * scale ** 2) & (norms > 0)
             cos = np.einsum("md,md->m", n_s, n_t) / np.where(norms > 0, norms, 1.0)
-            turned = real & (cos < 0.0)
+            turned = real & (cos < 0.0) & np.all(interior[new], axis=1)
             err[new[turned]] = np.maximum(err[new[turned]], 2 * target + 1.0)
         bad = err > target
         if not np.any(bad):
