@@ -257,7 +257,7 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
         a, g = key[0], key[1:]
         lo, hi = breaks[a][g[a]], breaks[a][g[a] + 1]
         kn = (_knot_values(fmap, a, lo, hi) - lo) / (hi - lo)
-        t = np.unique(np.concatenate([[0.0, 0.5, 1.0], kn]))
+        t, _ = _merge(np.array([0.0, 0.5, 1.0]), kn, 1e-7)  # a knot a hair off a break or the midpoint is that
         t_list.append(t)
         e_list.append(np.full(len(t), e))
     uvw = np.concatenate([_edge_params(k, breaks, t) for k, t in zip(keys, t_list)]) if keys else np.empty((0, 3))
