@@ -4,8 +4,11 @@ The cell boxes' boundaries are tessellated once for the whole tiling, adaptively
   1. grid vertices (the cells' corners);
   2. on every grid edge, 1D samples bisected until F's chord error meets the tolerance;
   3. on every grid face, a 2D triangulation of its parameter rectangle whose boundary is exactly its four edges'
-     samples, refined (Delaunay on the face's parameters scaled to mm, new points at the centroids or edge midpoints
-     of triangles that miss F) until every triangle meets the tolerance.
+     samples: one Delaunay triangulation of the boundary and a coarse seed (on the face's parameters scaled to mm),
+     then longest-edge bisection of every triangle that misses F, until every triangle meets the tolerance.
+The tolerance bounds the distance across the surface (from F at a triangle's centroid, edge midpoints and random
+points to the triangle's plane; for edges, to the chord): a slide along the surface is a change of parameter, not of
+shape, and counting it (as a tensor grid must) multiplied the triangles.
 Each vertex is evaluated once and every face is triangulated once, so the two cells on a shared face (also across a
 periodic seam, where the min face is the max face seen through the seam map) use the same vertex ids and the same
 triangles: neighbours meet on one cut surface, bit for bit. A cell's surface is its six face meshes, oriented outward.
@@ -28,7 +31,7 @@ AXES = "uvw"
 # tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
 _SAFETY = 0.8
 _MAX_EDGE_SAMPLES = 20000  # per grid edge; beyond this the tolerance is far below what a printer can show
-_MAX_FACE_POINTS = 200000  # per grid face
+_MAX_FACE_POINTS = 100000  # per grid face, on average
 _ROUNDS = 60
 _WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
 _BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
@@ -685,9 +688,9 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         bad = err > target
         if not np.any(bad):
             break
-        if len(st) > _MAX_FACE_POINTS * max(1, len(works) // 4):
+        if len(st) > _MAX_FACE_POINTS * len(works):
             raise GeometryError(
-                f"output.tolerance: {tolerance:g} mm needs more than {len(st)} points on the cell faces "
+                f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points per cell face "
                 f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
         length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
         # ties by parameter length, then by position in the triangle: deterministic
