@@ -256,6 +256,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         expected = stages["model_report"]["volume_mm3"] - gaps
         pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
         with timer("check", progress):
+            pieces = _printable(pieces)
             checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
     else:
         gaps = sum(joint_gap_volume(j) for j in joints)
@@ -265,6 +266,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs, progress=progress.piece)
         pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
         with timer("check", progress):
+            pieces = _printable(pieces)
             checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
         deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                         and checks["volume_error"] < -0.005)
@@ -334,13 +336,24 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
     with timer("compose", progress):
         bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
         solid = from_trimesh(stages["model"].mesh, "mesh model")
-        cut = intersect_pieces({p.id: from_trimesh(p.mesh, p.id) for p in bodies}, solid)
+        cage_pieces = {p.id: from_trimesh(p.mesh, p.id) for p in bodies}
+        cut = intersect_pieces(cage_pieces, solid)
         cut, merges = merge_fragments(cut)
     cells = {p.id: p.cell for p in bodies}
     present = set(cut)
     joints = [j for j in joints if _pid(j.pin_cell) in present and _pid(j.hole_cell) in present]
     with timer("joint", progress):
-        joints, moved = keep_joints_inside(joints, solid)
+        # Each joint may only move where the mesh and its own two cage cells hold it with a wall, so a moved pin
+        # never reaches into a third piece.
+        kept, moved = [], []
+        for j in joints:
+            a, b = _pid(j.pin_cell), _pid(j.hole_cell)
+            region = boolean(boolean(cage_pieces[a], cage_pieces[b], "union", f"{a}+{b}"), solid, "intersection",
+                             f"{a}+{b}")
+            k, records = keep_joints_inside([j], region)
+            kept += k
+            moved += records
+        joints = kept
     pieces = []
     with timer("compose", progress):
         for pid in sorted(cut, key=lambda k: cells[k]):
@@ -373,6 +386,35 @@ def _assembly(plan, pieces, joints, timer, progress):
               file=sys.stderr)
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
+
+
+def _printable(pieces):
+    """Pieces exactly as STL and 3MF store them: float32 vertices. Rounding can merge the ends of micro-edges that
+    booleans and tessellation leave; those edges are collapsed (exact duplicates merged, triangles that repeat a
+    vertex dropped) so the checks judge the very mesh that is written."""
+    import dataclasses
+
+    import trimesh
+
+    from .check import closed_problem
+    from .geometry import weld
+
+    out = []
+    for p in pieces:
+        v32 = np.asarray(p.mesh.vertices, dtype=np.float32).astype(np.float64)
+        uniq, inverse = np.unique(v32, axis=0, return_inverse=True)
+        v, f = weld(uniq, inverse.reshape(-1)[p.mesh.faces], 0.0)
+        mesh = trimesh.Trimesh(v, f, process=False)
+        mesh.remove_unreferenced_vertices()
+        problem = closed_problem(mesh)
+        if problem:
+            raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
+                                f"3MF files ({problem}); try a smaller output.tolerance")
+        out.append(dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))))
+    if hasattr(pieces, "sampling"):
+        out = type(pieces)(out)
+        out.sampling, out.seconds = pieces.sampling, getattr(pieces, "seconds", None)
+    return out
 
 
 def _label(spec, stages, pieces, joints, timer, progress):
