@@ -427,24 +427,24 @@ def _label(spec, stages, pieces, joints, timer, progress):
     if not spec.output.labels:
         return pieces, {}, 0.0
     tiling, fmap = stages["tiling"], stages["fmap"]
-    out, sites, removed = [], {}, 0.0
+
+    def one(p):
+        try:
+            body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints, what=p.id)
+        except GeometryError as e:
+            # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
+            return p, {"skipped": str(e)}, 0.0
+        if site is None:
+            return p, None, 0.0
+        mesh = to_trimesh(body)
+        return (dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))),
+                site.to_report(), p.volume - float(mesh.volume))
+
     with timer("label", progress):
-        for p in pieces:
-            try:
-                body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
-                                         what=p.id)
-            except GeometryError as e:
-                # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
-                body, site = None, None
-                sites[p.id] = {"skipped": str(e)}
-            if site is None:
-                sites.setdefault(p.id, None)
-                out.append(p)
-                continue
-            mesh = to_trimesh(body)
-            removed += p.volume - float(mesh.volume)
-            sites[p.id] = site.to_report()
-            out.append(dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))))
+        results = [one(p) for p in pieces]
+    out = [r[0] for r in results]
+    sites = {p.id: r[1] for p, r in zip(pieces, results)}
+    removed = sum(r[2] for r in results)
     if hasattr(pieces, "sampling"):
         out = type(pieces)(out)
         out.sampling, out.seconds = pieces.sampling, getattr(pieces, "seconds", None)
