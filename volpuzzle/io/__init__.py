@@ -12,6 +12,7 @@ import os
 import numpy as np
 
 from ..errors import ExportError, ModelError
+from ..spline.knots import insert_knot
 from ..spline.volume import Volume
 
 HEAD_BYTES = 65536
@@ -43,42 +44,13 @@ def _is_float(t):
         return False
 
 
-def insert_knot(degree, knots, hpoints, t, times):
-    """Insert knot t `times` times along axis 0 of hpoints (Boehm; The NURBS Book A5.1, needs s + times <= p).
-
-    knots (m,), hpoints (n, ..., 4) homogeneous -> (knots (m+times,), hpoints (n+times, ..., 4)).
-    """
-    p, U, P = degree, np.asarray(knots, float), np.asarray(hpoints, float)
-    if times <= 0:
-        return U, P
-    n = P.shape[0]
-    k = int(np.searchsorted(U, t, side="right")) - 1  # span: U[k] <= t < U[k+1]
-    s = int(np.sum(U == t))
-    r = times
-    Q = np.empty((n + r,) + P.shape[1:])
-    Q[:k - p + 1] = P[:k - p + 1]
-    Q[k - s + r:] = P[k - s:]
-    R = P[k - p:k - s + 1].copy()
-    L = k - p
-    for j in range(1, r + 1):
-        L = k - p + j
-        for i in range(p - j - s + 1):
-            alpha = (t - U[L + i]) / (U[i + k + 1] - U[L + i])
-            R[i] = alpha * R[i + 1] + (1.0 - alpha) * R[i]
-        Q[L] = R[0]
-        Q[k + r - j - s] = R[p - j - s]
-    for i in range(L + 1, k - s):
-        Q[i] = R[i - L]
-    return np.concatenate([U[:k + 1], np.full(r, t), U[k + 1:]]), Q
-
-
 def _clamp_left(p, U, P):
     a = U[p]
     s = int(np.sum(U == a))
     lead = int(np.sum(U < a))
     if s > p:
         return U[lead:], P[lead:]
-    U, P = insert_knot(p, U, P, a, p - s)
+    U, P = insert_knot(U, p, P, a, p - s)
     # With a of multiplicity p, the p+1 functions alive right of a match the clamped basis there (their last
     # polynomial piece does not depend on the knots left of a), so the knots left of a can become a.
     return np.concatenate([[a], U[lead:]]), P[lead - 1:]

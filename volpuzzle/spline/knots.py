@@ -27,8 +27,8 @@ def breaks(knots, degree):
 def insert_knot(knots, degree, hpoints, t, times=1, axis=0):
     """Boehm's algorithm (NURBS Book A5.1) along `axis` of hpoints (..., n, ..., d).
 
-    Returns (new_knots (m + times,), new_hpoints with n + times along axis). t must lie strictly inside
-    the domain, and its multiplicity after insertion may not exceed the degree.
+    Returns (new_knots (m + times,), new_hpoints with n + times along axis). t must lie in the domain
+    [knots[p], knots[n]) (its start too, for clamping a floating knot vector), and its multiplicity after insertion may not exceed the degree.
     """
     knots = np.asarray(knots, dtype=float)
     p = int(degree)
@@ -38,9 +38,10 @@ def insert_knot(knots, degree, hpoints, t, times=1, axis=0):
     lo, hi = knots[p], knots[n]
     if times < 0:
         raise ModelError(f"insert_knot: times must be >= 0, got {times}")
-    if not (lo < t < hi):
-        raise ModelError(f"insert_knot: parameter {t!r} along {AXES[axis] if axis < 3 else axis} is not strictly "
-                         f"inside the domain ({lo:g}, {hi:g})")
+    # t == lo is allowed: clamping a floating knot vector inserts at the start of its domain.
+    if not (lo <= t < hi):
+        raise ModelError(f"insert_knot: parameter {t!r} along {AXES[axis] if axis < 3 else axis} is not inside "
+                         f"the domain [{lo:g}, {hi:g})")
     s = multiplicity(knots, t)
     if s + times > p:
         raise ModelError(f"insert_knot: inserting {t:g} {times} time(s) would give multiplicity {s + times}, "
