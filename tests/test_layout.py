@@ -1,0 +1,102 @@
+"""layout and preview: print orientation, plates that hold every piece once, the preview picture."""
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from helpers_build import write_spec
+import volpuzzle
+from volpuzzle.errors import SpecError
+from volpuzzle.io.threemf import read_3mf
+from volpuzzle.layout import layout, print_orientation
+from volpuzzle.preview import render_preview
+
+
+def _wedge():
+    """A triangular prism, 40 x 10 x 20: its largest flat face is the slanted one."""
+    return trimesh.convex.convex_hull(
+        np.array([[0, 0, 0], [40, 0, 0], [0, 10, 0], [0, 0, 20], [40, 0, 20], [0, 10, 20]], float))
+
+
+def test_a_large_flat_face_goes_down():
+    box = trimesh.creation.box([10, 30, 50])
+    rot = print_orientation(box)
+    placed = box.copy().apply_transform(rot)
+    # the 30 x 50 face rests on the plate: the piece stands 10 mm tall
+    assert np.isclose(np.ptp(placed.vertices[:, 2]), 10.0)
+    wedge = _wedge()
+    placed = wedge.copy().apply_transform(print_orientation(wedge))
+    down = placed.face_normals[:, 2] < -0.999
+    assert placed.area_faces[down].sum() == pytest.approx(max(wedge.facets_area), rel=1e-6)
+
+
+def test_pins_pointing_down_are_avoided():
+    box = trimesh.creation.box([20, 20, 20])  # every face is equally good: the pin decides
+    rot = print_orientation(box, [np.array([0.0, 0.0, -1.0])])
+    pin_after = rot[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    assert pin_after[2] > -0.5
+
+
+def test_every_part_on_exactly_one_plate_inside_it_and_apart():
+    rng = np.random.default_rng(3)
+    parts = [(f"p{i}", trimesh.creation.box(rng.uniform(15, 60, 3))) for i in range(14)]
+    plate, spacing = (120.0, 100.0), 4.0
+    placements, plates = layout(parts, plate, spacing)
+    names = [n for pl in plates for n in pl.names]
+    assert sorted(names) == sorted(n for n, _ in parts)  # every part once
+    meshes = dict(parts)
+    by_plate = {}
+    for pl in placements:
+        m = meshes[pl.name].copy().apply_transform(pl.transform)
+        lo, hi = m.bounds
+        assert lo[2] == pytest.approx(0.0, abs=1e-9)  # resting on the plate
+        assert np.all(lo[:2] >= -1e-6) and hi[0] <= plate[0] + 1e-6 and hi[1] <= plate[1] + 1e-6
+        assert np.linalg.det(pl.transform[:3, :3]) > 0  # never a mirror image
+        by_plate.setdefault(pl.plate, []).append((lo, hi))
+    for boxes in by_plate.values():
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                (a0, a1), (b0, b1) = boxes[i], boxes[j]
+                gap = np.maximum(b0[:2] - a1[:2], a0[:2] - b1[:2]).max()
+                assert gap >= spacing - 1e-6
+    assert 0 < min(p.fill_ratio for p in plates) and max(p.fill_ratio for p in plates) <= 1
+
+
+def test_a_part_larger_than_the_plate_is_refused_with_the_size_needed():
+    with pytest.raises(SpecError, match=r"output.plate: .*expected at least \[80.0, 50.0\]"):
+        layout([("big", trimesh.creation.box([80, 50, 10]))], (60, 60), 4)
+
+
+def test_preview_is_a_wide_picture(tmp_path):
+    meshes = [trimesh.creation.box([10, 10, 10]).apply_translation([12 * i, 0, 0]) for i in range(3)]
+    colors = np.array([[200, 60, 60], [60, 200, 60], [60, 60, 200]], np.uint8)
+    render_preview(tmp_path / "p.png", meshes, colors, title="t")
+    img = Image.open(tmp_path / "p.png")
+    assert img.size == (1600, 800)
+    px = np.asarray(img.convert("RGB")).reshape(-1, 3)
+    assert (np.abs(px.astype(int) - [200, 60, 60]).sum(1) < 120).any()  # the pieces' colours are in it
+
+
+def test_build_writes_plates_every_piece_once_and_strict_3mf(tmp_path):
+    spec = write_spec(tmp_path, {"name": "plates", "model": {"builtin": {"type": "quarter-torus"}},
+                                 "grid": [2, 1, 2], "output": {"directory": str(tmp_path / "out"),
+                                                               "tolerance": 0.3, "plate": [90, 80]}})
+    report = volpuzzle.build(spec, jobs=1)
+    on_plates = [n for pl in report["plates"] for n in pl["pieces"]]
+    assert sorted(on_plates) == sorted(p["id"] for p in report["pieces"])
+    for pl in report["plates"]:
+        objects = read_3mf(tmp_path / "out" / pl["file"], strict=True)
+        assert [o[0] for o in objects] == pl["pieces"]
+        for _, v, _, rgb in objects:
+            assert v[:, 2].min() == pytest.approx(0.0, abs=1e-4)
+            assert rgb is not None
+    assert (tmp_path / "out" / "preview.png").exists()
+
+
+def test_plate_smaller_than_the_largest_piece_is_refused_before_building(tmp_path):
+    spec = write_spec(tmp_path, {"name": "tiny", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 1],
+                                 "output": {"directory": str(tmp_path / "out"), "plate": [30, 30]}})
+    with pytest.raises(SpecError, match=r"output.plate: the largest piece needs"):
+        volpuzzle.build(spec, jobs=1)
+    assert not (tmp_path / "out").exists()
