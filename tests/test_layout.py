@@ -100,3 +100,35 @@ def test_plate_smaller_than_the_largest_piece_is_refused_before_building(tmp_pat
     with pytest.raises(SpecError, match=r"output.plate: the largest piece needs"):
         volpuzzle.build(spec, jobs=1)
     assert not (tmp_path / "out").exists()
+
+
+def test_pin_triangles_cover_the_pin_and_nothing_else():
+    from types import SimpleNamespace
+
+    import manifold3d
+
+    from volpuzzle.compose import Piece
+    from volpuzzle.geometry import to_trimesh
+    from volpuzzle.pipeline import pin_triangles
+
+    r, length = 2.0, 6.0
+    body = manifold3d.Manifold.cube([20, 20, 20]) + manifold3d.Manifold.cylinder(length + 1, r, r, 96).translate(
+        [10, 10, 19])
+    mesh = to_trimesh(body)
+    piece = Piece("p0-0-0", (0, 0, 0), mesh, float(mesh.volume), float(mesh.volume), len(mesh.faces))
+    joint = SimpleNamespace(style="pin", shape="cylinder", pin_cell=(0, 0, 0), center=np.array([10.0, 10.0, 20.0]),
+                            direction=np.array([0.0, 0.0, 1.0]), radius=r, length=length)
+    flags = pin_triangles([piece], [joint])["p0-0-0"]
+    area = mesh.area_faces[flags.astype(bool)].sum()
+    assert area == pytest.approx(2 * np.pi * r * length + np.pi * r * r, rel=0.02)  # side and tip, not the cube
+    assert pin_triangles([piece], [SimpleNamespace(**{**vars(joint), "pin_cell": (1, 0, 0)})]) == {}
+
+
+def test_3mf_pieces_with_a_pin_material_read_back_strictly(tmp_path):
+    spec = write_spec(tmp_path, {"name": "m3", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 1],
+                                 "output": {"directory": str(tmp_path / "out"), "tolerance": 0.3, "format": "3mf"}})
+    report = volpuzzle.build(spec, jobs=1)
+    for p in report["pieces"]:
+        objects = read_3mf(tmp_path / "out" / p["file"], strict=True)
+        assert len(objects) == 1 and objects[0][3] is not None
+    assert len(read_3mf(tmp_path / "out" / "puzzle.3mf", strict=True)) == len(report["pieces"])

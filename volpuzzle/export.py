@@ -217,12 +217,12 @@ def render_report_md(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb) -> None:
+def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pins=None) -> None:
     if fmt == "stl":
         # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes.
         path.write_bytes(trimesh.exchange.stl.export_stl(mesh))
     else:
-        write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)])
+        write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)], materials=[pins])
 
 
 def _looks_like_output(target: Path) -> bool:
@@ -247,12 +247,14 @@ def check_target(target, force: bool = False) -> Path:
 
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
                 dowels: Sequence = (), colors: Optional[np.ndarray] = None,
-                extras: Optional[Mapping[str, Callable[[Path], None]]] = None) -> Path:
+                extras: Optional[Mapping[str, Callable[[Path], None]]] = None,
+                pin_triangles: Optional[Mapping[str, np.ndarray]] = None) -> Path:
     """Write the output folder (SPEC section 5) atomically -> the target path.
 
     pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.
     colors: (n, 3) uint8 per piece, default piece_colors(n). extras: {relative path: writer(path)} for
-    files produced elsewhere (plates, preview), called inside the temporary folder.
+    files produced elsewhere (plates, preview), called inside the temporary folder. pin_triangles: {piece id:
+    (m,) 0/1 per triangle}, 1 on a pin: 3MF files give those triangles the second (pin) material.
     Raises ExportError when the target exists without force, or on any failed write.
     """
     t0 = time.perf_counter()
@@ -283,7 +285,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         piece_entries = []
         for (pid, mesh), piece, rgb in zip(items, pieces, colors):
             rel = f"pieces/{pid}.{fmt}"
-            _write_piece(tmp / rel, pid, mesh, fmt, rgb)
+            _write_piece(tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid))
             entry = entries.get(pid) or report_piece_entry(piece, rel)
             entry["file"] = rel
             piece_entries.append(entry)
@@ -297,7 +299,8 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
                 dowel_entries.append({"name": str(name), "file": rel, "volume_mm3": abs(float(mesh.volume))})
             report["dowels"] = dowel_entries
         write_3mf(tmp / "puzzle.3mf", [(pid, mesh.vertices, mesh.faces, rgb, None)
-                                       for (pid, mesh), rgb in zip(items, colors)])
+                                       for (pid, mesh), rgb in zip(items, colors)],
+                  materials=[(pin_triangles or {}).get(pid) for pid, _ in items])
         for rel, writer in (extras or {}).items():
             dest = tmp / rel
             dest.parent.mkdir(parents=True, exist_ok=True)

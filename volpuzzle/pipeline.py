@@ -291,8 +291,9 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
     assembly = _assembly(stages["plan"], pieces, joints, timer, progress)
     colors = piece_colors(len(pieces))
+    pins = pin_triangles(pieces, joints)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors)
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins)
     ext = spec.output.format
     plate_of = {pl.name: pl.plate for pl in placements}
     entries = []
@@ -318,7 +319,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         report["mesh"] = mesh_report
     with timer("export", progress):
         report["timings_s"] = timer.timings
-        write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras)
+        write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras,
+                    pin_triangles=pins)
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
@@ -455,7 +457,28 @@ def _pid(index):
     return "p" + "-".join(str(i) for i in index)
 
 
-def _layout(spec, pieces, dowels, joints, colors):
+def pin_triangles(pieces, joints):
+    """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
+    radius (a snap pin swells by 15%) and length. For the second (pin) material of 3MF files."""
+    out = {}
+    for p in pieces:
+        mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
+        if not mine:
+            continue
+        c = p.mesh.triangles_center
+        flag = np.zeros(len(c), np.uint8)
+        for j in mine:
+            d = np.asarray(j.direction, float)
+            rel = c - np.asarray(j.center, float)
+            t = rel @ d
+            radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
+            reach = j.radius * (1.2 if j.shape == "snap" else 1.0) + 1e-3
+            flag |= ((t > 1e-3) & (t <= j.length + 1e-3) & (radial <= reach)).astype(np.uint8)
+        out[p.id] = flag
+    return out
+
+
+def _layout(spec, pieces, dowels, joints, colors, pins=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
     from .layout import layout
@@ -480,7 +503,7 @@ def _layout(spec, pieces, dowels, joints, colors):
                 m = meshes[place.name]
                 v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
                 objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
-            write_3mf(path, objs)
+            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs])
         extras[pl.file] = write_plate
     extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], colors, title=spec.name)
     return placements, plates, extras
