@@ -126,16 +126,20 @@ def test_a_joint_with_no_room_is_dropped():
                                        "distance": 0.0}]
 
 
-def test_a_part_meeting_its_neighbour_only_along_an_edge_is_refused(monkeypatch):
+def test_a_part_meeting_its_neighbour_only_along_an_edge_is_not_welded(monkeypatch):
     # A union across an edge contact is non-manifold: no slicer takes it, so the merge must not make it. The contact
-    # score is forced, as on a sphere cage where parts meet along lines that the axis shifts do pick up.
+    # score is forced, as on a sphere cage where parts meet along lines that the axis shifts do pick up. A small
+    # whole piece then stays a piece of its own; a fragment (a loose body of another piece) is refused.
     import volpuzzle.meshcut as meshcut
 
     monkeypatch.setattr(meshcut, "_touch", lambda frag, other, grow: 1.0)
     big = manifold3d.Manifold.cube([10.0, 10.0, 10.0])
     tiny = manifold3d.Manifold.cube([0.5, 0.5, 10.0]).translate([10.0, 10.0, 0.0])
+    out, records = merge_fragments({"p0-0-0": big, "p1-1-0": tiny})
+    assert sorted(out) == ["p0-0-0", "p1-1-0"]
+    assert records[0]["to"] is None and "kept" in records[0]["reason"]
     with pytest.raises(GeometryError, match="only along an edge or at a point"):
-        merge_fragments({"p0-0-0": big, "p1-1-0": tiny})
+        merge_fragments({"p0-0-0": big, "p1-1-0": big.translate([20.0, 0, 0]) + tiny})
 
 
 def test_small_pieces_merge_one_at_a_time_so_neighbours_of_small_pieces_still_count():

@@ -97,22 +97,32 @@ def merge_fragments(pieces, min_fraction=0.05, grow=None):
             if len(merged.decompose()) == 1 and closed_problem(to_trimesh(merged)) is None:
                 break
         else:
+            if reason == "small piece":
+                # Small but whole: better printed on its own than welded into a solid no slicer accepts.
+                pieces[src] = body
+                records.append({"from": src, "to": None, "volume_mm3": float(body.volume()),
+                                "reason": "small piece kept: it meets its neighbours only along an edge or a point"})
+                return False
             raise GeometryError(
                 f"{src}: a {reason} of {body.volume():.4g} mm^3 meets its neighbours ({', '.join(ranked)}) only along "
                 "an edge or at a point, so merging it would not give one closed solid (use a different grid or cage)")
         pieces[best] = merged
         records.append({"from": src, "to": best, "volume_mm3": float(body.volume()), "reason": reason})
+        return True
 
     for src, body, reason in loose:
         give_away(src, body, reason)
     # Pieces too small to print on their own go whole, the smallest first and one at a time, so that a small piece
     # still finds its face neighbours (which may be small too, and grow by taking it).
     mean = sum(p.volume() for p in pieces.values()) / len(pieces)
+    kept = set()
     while len(pieces) > 1:
-        pid = min(pieces, key=lambda k: (pieces[k].volume(), k))
-        if pieces[pid].volume() >= min_fraction * mean:
+        small = [k for k in pieces if k not in kept and pieces[k].volume() < min_fraction * mean]
+        if not small:
             break
-        give_away(pid, pieces.pop(pid), "small piece")
+        pid = min(small, key=lambda k: (pieces[k].volume(), k))
+        if not give_away(pid, pieces.pop(pid), "small piece"):
+            kept.add(pid)
     return pieces, records
 
 
