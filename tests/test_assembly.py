@@ -18,6 +18,7 @@ from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
+from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # small models
@@ -58,21 +59,6 @@ def _warp(seed=3, amplitude=0.06):
     return Volume((3, 3, 3), (kn, kn, kn), g + d)
 
 
-def _ring(twist=0.0, major=40.0, side=16.0, n=17):
-    """A square-section ring round z, periodic in w; the section turns by `twist` radians once round (pi/2: the seam
-    swaps u and v)."""
-    knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, n - 2), [1, 1, 1]])
-    grev = np.array([knots[i + 1:i + 4].mean() for i in range(n)])
-    cp = np.zeros((2, 2, n, 3))
-    for i, j, l in np.ndindex(2, 2, n):
-        s, t = (i - 0.5) * side, (j - 0.5) * side
-        phi, th = 2 * np.pi * grev[l], twist * grev[l]
-        if l == n - 1:
-            phi = 0.0
-        er = np.array([np.cos(phi), np.sin(phi), 0.0])
-        ez = np.array([0.0, 0.0, 1.0])
-        cp[i, j, l] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
-    return Volume((1, 1, 3), ([0, 0, 1, 1], [0, 0, 1, 1], knots), cp)
 
 
 def _map(vol, warp=None):
@@ -85,7 +71,7 @@ SPEC = SimpleNamespace(style="pin", shape="cylinder", radius=None, length=None, 
 
 
 def _ring_tiling(twist, grid=(2, 2, 8)):
-    vol = _ring(twist)
+    vol = ring(twist)
     return tile(vol, grid, periodic=(2,), seams=find_seams(vol)), _map(vol)
 
 

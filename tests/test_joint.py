@@ -16,6 +16,7 @@ from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
+from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Small models built here (the real builtins live in volpuzzle.models)
@@ -41,24 +42,6 @@ def _bent(mirror=False):
     return Volume((3, 1, 1), ([0, 0, 0, 0, 1, 1, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1]), cp)
 
 
-def _ring(twist=0.0, major=40.0, side=16.0, n=17):
-    """A square-section ring around z, periodic in w; the section turns by `twist` radians once round.
-
-    The control points sample the exact shape at the Greville abscissae (a quasi-interpolant), and the last slice
-    is the first one turned, so the seam closes exactly.
-    """
-    knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, n - 2), [1, 1, 1]])
-    grev = np.array([knots[i + 1:i + 4].mean() for i in range(n)])
-    cp = np.zeros((2, 2, n, 3))
-    for i, j, l in np.ndindex(2, 2, n):
-        s, t = (i - 0.5) * side, (j - 0.5) * side
-        phi, th = 2 * np.pi * grev[l], twist * grev[l]
-        if l == n - 1:
-            phi = 0.0
-        er = np.array([np.cos(phi), np.sin(phi), 0.0])
-        ez = np.array([0.0, 0.0, 1.0])
-        cp[i, j, l] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
-    return Volume((1, 1, 3), ([0, 0, 1, 1], [0, 0, 1, 1], knots), cp)
 
 
 def _map(vol):
@@ -116,8 +99,8 @@ MODELS = {
     "box": lambda: (_box(), ()),
     "bent": lambda: (_bent(), ()),
     "mirrored": lambda: (_bent(mirror=True), ()),
-    "torus": lambda: (_ring(), (2,)),
-    "twisted": lambda: (_ring(twist=np.pi / 2), (2,)),
+    "torus": lambda: (ring(), (2,)),
+    "twisted": lambda: (ring(twist=np.pi / 2), (2,)),
 }
 
 
@@ -154,7 +137,7 @@ def test_at_most_three_pins_and_holes_over_grids(grid):
 @settings(max_examples=4, deadline=None, derandomize=True)
 @given(st.integers(1, 2), st.integers(2, 4))
 def test_at_most_three_pins_and_holes_on_a_twisted_ring(n, along):
-    vol = _ring(twist=np.pi / 2)
+    vol = ring(twist=np.pi / 2)
     t = _tiling(vol, (n, n, along), (2,))
     joints = J.plan_joints(t, _map(vol), _spec())
     for c in _roles(joints, t).values():
@@ -309,7 +292,7 @@ def test_directions_are_unit_and_point_into_the_hole_piece(name):
 
 @pytest.mark.parametrize("twist", [0.0, np.pi / 2])
 def test_joints_cross_the_seam_and_pair_the_right_cells(twist):
-    vol = _ring(twist=twist)
+    vol = ring(twist=twist)
     t = _tiling(vol, (2, 2, 4), (2,))
     joints = J.plan_joints(t, _map(vol), _spec())
     seam = [j for j in joints if j.across_seam]
