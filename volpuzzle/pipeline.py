@@ -111,7 +111,8 @@ def _load_mesh_model(spec):
 def _seams_for(spec, vol):
     from .spline.seams import find_seams
 
-    return {a: s for a, s in find_seams(vol).items() if a in spec.periodic}, find_seams(vol)
+    found = find_seams(vol)
+    return {a: s for a, s in found.items() if a in spec.periodic}, found
 
 
 def _check_grid_vs_tolerance(spec, tiling, fmap):
@@ -331,7 +332,7 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
     the mesh, then pins and holes. -> (pieces, kept joints, report dict)"""
     from .compose import Piece, compose
     from .geometry import boolean, from_trimesh, to_trimesh
-    from .joint import hole_solid, pieces_joints, pin_solid
+    from .joint import hole_solid, piece_id, pieces_joints, pin_solid
     from .meshcut import intersect_pieces, keep_joints_inside, merge_fragments
 
     tiling = stages["tiling"]
@@ -343,13 +344,13 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
         cut, merges = merge_fragments(cut)
     cells = {p.id: p.cell for p in bodies}
     present = set(cut)
-    joints = [j for j in joints if _pid(j.pin_cell) in present and _pid(j.hole_cell) in present]
+    joints = [j for j in joints if piece_id(j.pin_cell) in present and piece_id(j.hole_cell) in present]
     with timer("joint", progress):
         # Each joint may only move where the mesh and its own two cage cells hold it with a wall, so a moved pin
         # never reaches into a third piece.
         kept, moved = [], []
         for j in joints:
-            a, b = _pid(j.pin_cell), _pid(j.hole_cell)
+            a, b = piece_id(j.pin_cell), piece_id(j.hole_cell)
             region = boolean(boolean(cage_pieces[a], cage_pieces[b], "union", f"{a}+{b}"), solid, "intersection",
                              f"{a}+{b}")
             k, records = keep_joints_inside([j], region)
@@ -453,10 +454,6 @@ def _label(spec, stages, pieces, joints, timer, progress):
     return out, sites, removed
 
 
-def _pid(index):
-    return "p" + "-".join(str(i) for i in index)
-
-
 def pin_triangles(pieces, joints):
     """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
     radius (a snap pin swells by 15%) and length. For the second (pin) material of 3MF files."""
@@ -481,13 +478,14 @@ def pin_triangles(pieces, joints):
 def _layout(spec, pieces, dowels, joints, colors, pins=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
+    from .joint import piece_id
     from .layout import layout
     from .preview import render_preview
 
     pin_dirs = {}
     for j in joints:
         if j.style == "pin":
-            pid = "p" + "-".join(str(i) for i in j.pin_cell)
+            pid = piece_id(j.pin_cell)
             pin_dirs.setdefault(pid, []).append(np.asarray(j.direction))
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
     rgb = {p.id: c for p, c in zip(pieces, colors)}
