@@ -235,7 +235,7 @@ def _check_plate(spec, tiling, fmap):
 
 def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
-    from .check import check_pieces
+    from .check import assert_passed, check_pieces
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, write_build
     from .spec import load_spec, spec_to_dict, with_overrides
@@ -251,39 +251,42 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     joints = stages["joints"]
     tolerance = spec.output.tolerance
     mesh_report = None
+
+    def finish(pieces, joints, expected):
+        """Labels, the float32 form the files store, and the build's own checks on exactly that."""
+        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
+        with timer("check", progress):
+            pieces = _printable(pieces)
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
+        return pieces, labels, engraved, checks
+
     if stages["model"].mesh is not None:
         pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
-        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
-        with timer("check", progress):
-            pieces = _printable(pieces)
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
+        pieces, labels, engraved, checks = finish(pieces, joints, expected)
     else:
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
-    for attempt in range(3 if mesh_report is None else 0):
-        with timer("compose", progress):
-            pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs, progress=progress.piece)
-        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
-        with timer("check", progress):
-            pieces = _printable(pieces)
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
-        deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
-                        and checks["volume_error"] < -0.005)
-        if checks["passed"] or not deficit_only or attempt == 2:
-            break
-        # Chords inside a convex surface lose volume in proportion to the chord error. The user's tolerance is an
-        # upper bound, so tessellating finer still honours it while making the volumes add up.
-        tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
+        for attempt in range(3):
+            with timer("compose", progress):
+                pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs,
+                                 progress=progress.piece)
+            pieces, labels, engraved, checks = finish(pieces, joints, expected)
+            deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
+                            and checks["volume_error"] < -0.005)
+            if checks["passed"] or not deficit_only or attempt == 2:
+                break
+            # Chords inside a convex surface lose volume in proportion to the chord error. The user's tolerance is
+            # an upper bound, so tessellating finer still honours it while making the volumes add up.
+            tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
     checks["joint_gaps_mm3"] = round(gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
     sampling = getattr(pieces, "sampling", None)
     if sampling is not None:
         checks["max_surface_error_mm"] = round(float(sampling.max_error_mm), 6)
-    if not checks["passed"]:
-        raise GeometryError(_failed_checks_message(checks))
+    assert_passed(checks)
     dowels = []
     if spec.joints.style == "dowel":
         from .geometry import to_trimesh
@@ -391,6 +394,15 @@ def _assembly(plan, pieces, joints, timer, progress):
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
+def _like(pieces, out):
+    """`out` as the same kind of list as `pieces` (compose's Pieces carries .sampling and .seconds)."""
+    if not hasattr(pieces, "sampling"):
+        return out
+    kept = type(pieces)(out)
+    kept.sampling, kept.seconds = pieces.sampling, getattr(pieces, "seconds", None)
+    return kept
+
+
 def _printable(pieces):
     """Pieces exactly as STL and 3MF store them: float32 vertices. Rounding can merge the ends of micro-edges that
     booleans and tessellation leave; those edges are collapsed (exact duplicates merged, triangles that repeat a
@@ -414,9 +426,7 @@ def _printable(pieces):
             raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
                                 f"3MF files ({problem}); try a smaller output.tolerance")
         out.append(dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))))
-    if hasattr(pieces, "sampling"):
-        out = type(pieces)(out)
-        out.sampling, out.seconds = pieces.sampling, getattr(pieces, "seconds", None)
+    out = _like(pieces, out)
     return out
 
 
@@ -448,9 +458,7 @@ def _label(spec, stages, pieces, joints, timer, progress):
     out = [r[0] for r in results]
     sites = {p.id: r[1] for p, r in zip(pieces, results)}
     removed = sum(r[2] for r in results)
-    if hasattr(pieces, "sampling"):
-        out = type(pieces)(out)
-        out.sampling, out.seconds = pieces.sampling, getattr(pieces, "seconds", None)
+    out = _like(pieces, out)
     return out, sites, removed
 
 
@@ -505,19 +513,6 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None):
         extras[pl.file] = write_plate
     extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], colors, title=spec.name)
     return placements, plates, extras
-
-
-def _failed_checks_message(checks):
-    parts = []
-    if not checks.get("all_closed", True):
-        parts.append(f"pieces not closed: {', '.join(checks.get('closed_failures', []))}")
-    if checks.get("max_overlap_mm3", 0) > checks.get("overlap_limit_mm3", float("inf")):
-        parts.append(f"pieces {' and '.join(checks.get('max_overlap_pair', []))} overlap by "
-                     f"{checks['max_overlap_mm3']:.3g} mm^3 (limit {checks['overlap_limit_mm3']:.3g})")
-    if abs(checks.get("volume_error", 0)) > 0.005:
-        parts.append(f"piece volumes add up to {checks['volume_sum_mm3']:.6g} mm^3, expected "
-                     f"{checks['expected_volume_mm3']:.6g} (error {checks['volume_error']:.2%}, limit 0.5%)")
-    return "build failed its own checks: " + "; ".join(parts or ["see report"])
 
 
 def validate(spec_path):
