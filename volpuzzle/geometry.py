@@ -7,6 +7,8 @@ operation; every helper here checks both and raises GeometryError naming the pie
 import manifold3d
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import GeometryError
@@ -93,42 +95,38 @@ def weld(vertices, faces, tol):
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(v) == 0:
         return v.reshape(0, 3), f
-    rep = np.arange(len(v))
     if tol > 0:
         pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
         if len(pairs):
-            # union-find over close pairs; the root is the smallest index of each cluster
-            parent = np.arange(len(v))
-
-            def root(i):
-                while parent[i] != i:
-                    parent[i] = parent[parent[i]]
-                    i = parent[i]
-                return i
-
-            for i, j in pairs:
-                ri, rj = root(i), root(j)
-                if ri != rj:
-                    parent[max(ri, rj)] = min(ri, rj)
-            rep = np.array([root(i) for i in range(len(v))])
-    f = rep[f]
+            # clusters are the connected components of the close pairs; each maps to its smallest index
+            graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(v),) * 2)
+            _, comp = connected_components(graph, directed=False)
+            low = np.full(comp.max() + 1, len(v), dtype=np.int64)
+            np.minimum.at(low, comp, np.arange(len(v)))
+            f = low[comp][f]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     if len(f):
-        # a triangle and its reverse cancel; keep each oriented triangle once
+        # rotate each triangle to start at its smallest vertex: equal triangles then have equal rows, and a
+        # reversed one is the row with its last two entries swapped
         rot = np.argmin(f, axis=1)
-        canon = np.stack([f[np.arange(len(f)), (rot + k) % 3] for k in range(3)], axis=1)
-        rev = canon[:, [0, 2, 1]]
-        keys = {tuple(t): i for i, t in enumerate(canon)}
-        keep = np.ones(len(f), dtype=bool)
-        for i, t in enumerate(rev):
-            j = keys.get(tuple(t))
-            if j is not None:
-                keep[i] = keep[j] = False
-        _, first = np.unique(canon, axis=0, return_index=True)
-        dup = np.ones(len(f), dtype=bool)
-        dup[first] = False
-        f = f[keep & ~dup]
-    used = np.unique(f)
-    remap = -np.ones(len(v), dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return v[used], remap[f]
+        rows = np.arange(len(f))
+        canon = np.stack([f[rows, (rot + k) % 3] for k in range(3)], axis=1)
+        key, rkey = _row_keys(canon, canon[:, [0, 2, 1]])
+        # a triangle and its reverse cancel; keep each oriented triangle once
+        keep = ~np.isin(rkey, key)
+        _, first = np.unique(key, return_index=True)
+        once = np.zeros(len(f), dtype=bool)
+        once[first] = True
+        f = f[keep & once]
+    used, f = np.unique(f, return_inverse=True)
+    return v[used], f.reshape(-1, 3)
+
+
+def _row_keys(a, b):
+    """One int64 per row of the index arrays a and b (k, 3), equal exactly when the rows are equal."""
+    n = int(max(a.max(), b.max())) + 1
+    if n < 2 ** 21:
+        return [(x[:, 0] * n + x[:, 1]) * n + x[:, 2] for x in (a, b)]
+    _, inv = np.unique(np.concatenate([a, b]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return inv[:len(a)], inv[len(a):]
