@@ -607,6 +607,12 @@ def sample_parameters(tiling, fmap, tolerance):
                     float(max(worst_edge, worst_face)), tolerance)
 
 
+def _member(keys, sorted_keys):
+    """keys (any shape) found in the sorted 1-d sorted_keys: a binary search, cheaper than np.isin's sort of both."""
+    pos = np.clip(np.searchsorted(sorted_keys, keys), 0, len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
 def _refine_faces(works, breaks, fmap, target, tolerance):
     """Refine every face from its initial Delaunay triangulation, all faces in one batch per round: triangles whose
     tessellation misses F (at the centroid, the interior edge midpoints and two random points) by more than target
@@ -700,7 +706,7 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         rows = np.arange(len(tris))
         split = np.unique(keys[rows[bad], longest[bad]])
         while True:
-            has = np.isin(keys, split)
+            has = _member(keys, split)
             need = np.any(has, axis=1) & ~has[rows, longest]
             if not np.any(need):
                 break
@@ -711,7 +717,6 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         st = np.concatenate([st, 0.5 * (st[lo] + st[hi])])
         xyz = np.concatenate([xyz, np.full((len(split), 3), np.nan)])
         fid = np.concatenate([fid, fid[lo]])
-        has = np.isin(keys, split)
         touched = np.any(has, axis=1)
         t = tris[touched]
         r = longest[touched]
