@@ -450,8 +450,9 @@ def _label(spec, stages, pieces, joints, timer, progress):
         if site is None:
             return p, None, 0.0
         mesh = to_trimesh(body)
-        return (dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))),
-                site.to_report(), p.volume - float(mesh.volume))
+        volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
+        return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
+                site.to_report(), p.volume - volume)
 
     with timer("label", progress):
         results = [one(p) for p in pieces]
