@@ -131,6 +131,34 @@ def test_failure_with_force_keeps_the_old_output(tmp_path, pieces, monkeypatch):
     assert (target / "report.json").read_bytes() == old and leftovers(tmp_path) == []
 
 
+def test_3mf_extras_are_written_off_the_main_thread_and_their_failure_leaves_nothing(tmp_path, pieces):
+    import threading
+
+    threads = {}
+
+    def plate(path):
+        threads["plate"] = threading.current_thread() is threading.main_thread()
+        m = pieces[0].mesh
+        write_3mf(path, [("p0-0-0", m.vertices, m.faces, (10, 20, 30), None)])
+
+    def picture(path):
+        threads["picture"] = threading.current_thread() is threading.main_thread()
+        path.write_bytes(b"png")
+
+    extras = {"plates/plate-01.3mf": plate, "preview.png": picture}
+    target = write_build(tmp_path / "c", pieces, make_report(pieces), extras=extras)
+    assert threads == {"plate": False, "picture": True}
+    assert [o[0] for o in read_3mf(target / "plates" / "plate-01.3mf", strict=True)] == ["p0-0-0"]
+    assert json.loads((target / "report.json").read_text(encoding="utf-8"))["preview"] == "preview.png"
+
+    def lost(path):
+        raise OSError("plate lost")
+
+    with pytest.raises(ExportError, match="plate lost"):
+        write_build(tmp_path / "d", pieces, make_report(pieces), extras={**extras, "plates/plate-01.3mf": lost})
+    assert not (tmp_path / "d").exists() and leftovers(tmp_path) == []
+
+
 @pytest.mark.parametrize("fmt", ["stl", "3mf"])
 def test_identical_input_identical_bytes(tmp_path, pieces, fmt):
     a = write_build(tmp_path / "a", pieces, make_report(pieces), fmt=fmt)

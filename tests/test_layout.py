@@ -78,6 +78,22 @@ def test_preview_is_a_wide_picture(tmp_path):
     assert (np.abs(px.astype(int) - [200, 60, 60]).sum(1) < 120).any()  # the pieces' colours are in it
 
 
+def test_preview_paints_the_nearer_piece_over_the_farther(tmp_path):
+    from volpuzzle.preview import _view_axes
+
+    _, _, eye = _view_axes()
+    near = trimesh.creation.box([10, 10, 10])
+    far = trimesh.creation.box([10, 10, 10]).apply_translation(-40 * eye)  # straight behind it, seen from the eye
+    colors = np.array([[220, 40, 40], [40, 40, 220]], np.uint8)
+    for order in ([near, far], [far, near]):
+        cols = colors if order[0] is near else colors[::-1]
+        render_preview(tmp_path / "p.png", order, cols)
+        px = np.asarray(Image.open(tmp_path / "p.png").convert("RGB")).astype(int)
+        centre = px[px.shape[0] // 2 - 40:px.shape[0] // 2 + 40, 360:440].reshape(-1, 3)
+        assert (centre[:, 0] > centre[:, 2] + 40).mean() > 0.9  # red in front, whatever the drawing order
+        assert (px[:5, :5] == 255).all()  # white background
+
+
 def test_build_writes_plates_every_piece_once_and_strict_3mf(tmp_path):
     spec = write_spec(tmp_path, {"name": "plates", "model": {"builtin": {"type": "quarter-torus"}},
                                  "grid": [2, 1, 2], "output": {"directory": str(tmp_path / "out"),

@@ -13,6 +13,7 @@ import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
@@ -278,14 +279,29 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it private; the output folder should not be
     except OSError as e:
         raise ExportError(f"{target}: cannot create the output folder: {e}") from e
+    # lib3mf lets go of the GIL while it compresses, so 3MF files (and extras named *.3mf) are written on one worker
+    # thread while this one writes the rest and paints the preview.
+    worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="volpuzzle-3mf")
+    pending = []
+
+    def write(path, job, *args):
+        if path.suffix == ".3mf":
+            pending.append(worker.submit(job, *args))
+        else:
+            job(*args)
+
     try:
         report = dict(report)
         (tmp / "pieces").mkdir()
+        # the largest file first, so that the worker is busy from the start
+        write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
+              [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors)], "millimeter",
+              [(pin_triangles or {}).get(pid) for pid, _ in items])
         entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
         piece_entries = []
         for (pid, mesh), piece, rgb in zip(items, pieces, colors):
             rel = f"pieces/{pid}.{fmt}"
-            _write_piece(tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid))
+            write(tmp / rel, _write_piece, tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid))
             entry = entries.get(pid) or report_piece_entry(piece, rel)
             entry["file"] = rel
             piece_entries.append(entry)
@@ -295,16 +311,15 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
             dowel_entries = []
             for name, mesh in dowels:
                 rel = f"dowels/{name}.{fmt}"
-                _write_piece(tmp / rel, str(name), mesh, fmt, (200, 200, 200))
+                write(tmp / rel, _write_piece, tmp / rel, str(name), mesh, fmt, (200, 200, 200))
                 dowel_entries.append({"name": str(name), "file": rel, "volume_mm3": abs(float(mesh.volume))})
             report["dowels"] = dowel_entries
-        write_3mf(tmp / "puzzle.3mf", [(pid, mesh.vertices, mesh.faces, rgb, None)
-                                       for (pid, mesh), rgb in zip(items, colors)],
-                  materials=[(pin_triangles or {}).get(pid) for pid, _ in items])
-        for rel, writer in (extras or {}).items():
+        for rel, writer in sorted((extras or {}).items(), key=lambda kv: not kv[0].endswith(".3mf")):
             dest = tmp / rel
             dest.parent.mkdir(parents=True, exist_ok=True)
-            writer(dest)
+            write(dest, writer, dest)
+        for job in pending:
+            job.result()
         if report.get("preview") and not (tmp / report["preview"]).is_file():
             report.pop("preview")  # never link a picture that is not there
         if not report.get("preview") and (tmp / "preview.png").is_file():
@@ -318,10 +333,13 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         (tmp / "report.md").write_text(render_report_md(report), encoding="utf-8")
         _move_into_place(tmp, target)
     except BaseException as e:
+        worker.shutdown(wait=True, cancel_futures=True)  # nothing may still write into tmp once it is removed
         shutil.rmtree(tmp, ignore_errors=True)
         if isinstance(e, VolpuzzleError) or not isinstance(e, Exception):
             raise
         raise ExportError(f"{target}: writing the output failed: {e}") from e
+    finally:
+        worker.shutdown(wait=True)
     return target
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import ConvexHull
 from trimesh.path import packing
 
 from .errors import SpecError
@@ -38,14 +39,14 @@ class Plate:
         return f"plates/plate-{self.index:02d}.3mf"
 
 
-def _candidate_downs(mesh, count=24):
+def _candidate_downs(hull, count=24):
     """Outward normals of the largest convex-hull facets (and single hull faces) -> (k, 3), areas (k,)."""
-    hull = mesh.convex_hull
-    normals = [hull.facets_normal] if len(hull.facets) else []
-    areas = [hull.facets_area] if len(hull.facets) else []
+    facets = hull.facets
+    normals = [hull.facets_normal] if len(facets) else []
+    areas = [hull.facets_area] if len(facets) else []
     in_facet = np.zeros(len(hull.faces), bool)
-    for f in hull.facets:
-        in_facet[f] = True
+    if len(facets):
+        in_facet[np.concatenate(facets)] = True
     normals.append(hull.face_normals[~in_facet])
     areas.append(hull.area_faces[~in_facet])
     normals, areas = np.concatenate(normals), np.concatenate(areas)
@@ -53,49 +54,63 @@ def _candidate_downs(mesh, count=24):
     return normals[order], areas[order]
 
 
-def _score(mesh, down, up_dirs):
-    """(contact area on the plate, overhanging area, pins pointing down) when `down` faces the plate."""
-    h = mesh.vertices @ down
-    support = h.max()
-    n_dot = mesh.face_normals @ down
-    on_plate = (n_dot > FLAT_COS) & np.all(h[mesh.faces] > support - 1e-3 * max(mesh.scale, 1.0), axis=1)
-    contact = float(mesh.area_faces[on_plate].sum())
-    overhang = float(mesh.area_faces[(n_dot > OVERHANG_COS) & ~on_plate].sum())
-    pins_down = int(sum(1 for d in up_dirs if np.dot(d, down) > 0.5))
-    return contact, overhang, pins_down
+def _scores(mesh, downs, up_dirs):
+    """For every candidate `down` (k, 3) facing the plate: contact area on the plate (k,), overhanging area (k,),
+    pins pointing down (k,); and the piece's whole surface area. All candidates at once, on plain arrays: trimesh's
+    cached properties re-hash the mesh on every access."""
+    vertices = mesh.vertices.view(np.ndarray)
+    faces = mesh.faces.view(np.ndarray)
+    cross = mesh.triangles_cross.view(np.ndarray)  # usually cached by the volume checks already
+    double = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    area = 0.5 * double
+    scale = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    h = vertices @ downs.T
+    near = h > h.max(axis=0) - 1e-3 * max(scale, 1.0)
+    # cosines against unit normals, without dividing by each face's |cross|
+    n_dot = cross @ downs.T
+    on_plate = (n_dot > FLAT_COS * double[:, None]) & near[faces[:, 0]] & near[faces[:, 1]] & near[faces[:, 2]]
+    contact = area @ on_plate
+    overhang = area @ ((n_dot > OVERHANG_COS * double[:, None]) & ~on_plate)
+    up_dirs = np.reshape(np.asarray(up_dirs, float), (-1, 3))
+    pins_down = (downs @ up_dirs.T > 0.5).sum(axis=1)
+    return contact, overhang, pins_down, float(area.sum())
+
+
+def _orient(mesh, pin_directions=()):
+    """print_orientation's rotation, and the piece's convex-hull vertices (all its extreme points)."""
+    hull = mesh.convex_hull
+    downs, _ = _candidate_downs(hull)
+    downs = np.concatenate([downs, np.vstack([np.eye(3), -np.eye(3)])])
+    contact, overhang, pins_down, total_area = _scores(mesh, downs, pin_directions)
+    best_contact = contact.max()
+    index = np.arange(len(downs))
+    # A face is "large" when it carries a real share of the piece's footprint; else the piece has no flat side.
+    if best_contact > 0.02 * total_area:
+        best = np.lexsort((index, overhang - contact, contact < 0.8 * best_contact, pins_down))[0]
+    else:
+        best = np.lexsort((index, overhang, pins_down))[0]
+    rot = trimesh.geometry.align_vectors(downs[best], [0.0, 0.0, -1.0])
+    # Then turn about z so that the footprint's bounding rectangle is smallest.
+    hull_points = hull.vertices.view(np.ndarray)
+    pts = hull_points @ rot[:3, :3].T
+    t2d, _ = trimesh.bounds.oriented_bounds_2D(pts[:, :2])
+    spin = np.eye(4)
+    spin[:2, :2] = t2d[:2, :2]
+    if np.linalg.det(spin[:2, :2]) < 0:
+        spin[1, :2] *= -1  # a mirror would print the piece's mirror image; flipping one row keeps the box aligned
+    return spin @ rot, hull_points
 
 
 def print_orientation(mesh, pin_directions=()):
     """(4, 4) rotation that puts a large flat face down when the piece has one, else the least overhang; pins pointing
     up are preferred. Deterministic for the same mesh."""
-    downs, _ = _candidate_downs(mesh)
-    downs = np.concatenate([downs, np.vstack([np.eye(3), -np.eye(3)])])
-    scores = [_score(mesh, d, pin_directions) for d in downs]
-    best_contact = max(s[0] for s in scores)
-    # A face is "large" when it carries a real share of the piece's footprint; else the piece has no flat side.
-    flat_enough = best_contact > 0.02 * mesh.area
-    keys = []
-    for i, (contact, overhang, pins_down) in enumerate(scores):
-        if flat_enough:
-            key = (pins_down, contact < 0.8 * best_contact, overhang - contact, i)
-        else:
-            key = (pins_down, overhang, i)
-        keys.append(key)
-    down = downs[min(range(len(keys)), key=lambda i: keys[i])]
-    rot = trimesh.geometry.align_vectors(down, [0.0, 0.0, -1.0])
-    # Then turn about z so that the footprint's bounding rectangle is smallest.
-    pts = trimesh.transform_points(mesh.convex_hull.vertices, rot)[:, :2]
-    t2d, _ = trimesh.bounds.oriented_bounds_2D(pts)
-    spin = np.eye(4)
-    spin[:2, :2] = t2d[:2, :2]
-    if np.linalg.det(spin[:2, :2]) < 0:
-        spin[1, :2] *= -1  # a mirror would print the piece's mirror image; flipping one row keeps the box aligned
-    return spin @ rot
+    return _orient(mesh, pin_directions)[0]
 
 
-def _resting(mesh, rot):
-    """Translate the rotated piece so that it is centred on the origin in xy and rests on z = 0. -> (4, 4), extents (2,)"""
-    pts = trimesh.transform_points(mesh.vertices, rot)
+def _resting(points, rot):
+    """Translate the rotated piece so that it is centred on the origin in xy and rests on z = 0. points: the piece's
+    vertices, or just its convex-hull vertices (the same extremes). -> (4, 4), extents (2,)"""
+    pts = trimesh.transform_points(points, rot)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     move = np.eye(4)
     move[:3, 3] = [-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]]
@@ -106,7 +121,8 @@ def footprint_needed(meshes):
     """Smallest plate (w, d) that can hold the largest piece in its print orientation."""
     need = np.zeros(2)
     for mesh in meshes:
-        _, ext = _resting(mesh, print_orientation(mesh))
+        rot, hull_points = _orient(mesh)
+        _, ext = _resting(hull_points, rot)
         need = np.maximum(need, np.sort(ext)[::-1])
     return need
 
@@ -118,11 +134,11 @@ def layout(parts, plate, spacing, pin_directions=None):
     plate = np.asarray(plate, float)
     oriented, extents, areas = [], [], []
     for name, mesh in parts:
-        rot = print_orientation(mesh, pin_directions.get(name, ()))
-        place, ext = _resting(mesh, rot)
+        rot, hull_points = _orient(mesh, pin_directions.get(name, ()))
+        place, ext = _resting(hull_points, rot)
         oriented.append(place)
         extents.append(ext)
-        hull2d = trimesh.transform_points(mesh.convex_hull.vertices, place)[:, :2]
+        hull2d = trimesh.transform_points(hull_points, place)[:, :2]
         areas.append(_hull_area(hull2d))
     extents = np.array(extents)
     fits = np.all(np.sort(extents, axis=1)[:, ::-1] <= np.sort(plate)[::-1] + 1e-9, axis=1)
@@ -133,8 +149,7 @@ def layout(parts, plate, spacing, pin_directions=None):
     placements, plates = [None] * len(parts), []
     remaining = list(range(len(parts)))
     while remaining:
-        bounds, inserted = packing.rectangles(extents[remaining], size=plate, spacing=spacing / 2.0, rotate=True,
-                                              seed=0)
+        bounds, inserted = _pack(extents[remaining], plate, spacing)
         if not np.any(inserted):
             inserted = np.zeros(len(remaining), bool)
             inserted[0] = True
@@ -153,8 +168,15 @@ def layout(parts, plate, spacing, pin_directions=None):
     return placements, plates
 
 
+def _pack(extents, plate, spacing):
+    """trimesh's packer -> (bounds, inserted). When its first, unshuffled attempt already places every part, the 49
+    shuffled ones it would go on to try could only move the parts around on this same plate, at 50 times the cost."""
+    bounds, inserted = packing.rectangles(extents, size=plate, spacing=spacing / 2.0, rotate=True, iterations=1)
+    if inserted.all():
+        return bounds, inserted
+    return packing.rectangles(extents, size=plate, spacing=spacing / 2.0, rotate=True, seed=0)
+
+
 def _hull_area(points):
     """Area of the 2D convex hull of (n, 2) points (scipy calls a 2D hull's area its volume)."""
-    from scipy.spatial import ConvexHull
-
     return float(ConvexHull(points).volume)

@@ -7,11 +7,15 @@ puzzle and the plates go through lib3mf. Geometry crosses the ctypes boundary as
 lib3mf stamps every object, build item and the build with a random UUID (production extension) on
 creation; we overwrite them with UUIDs derived from the object's name and position, so the same input
 gives byte-identical files. The zip entries already carry a fixed 1980 date.
+
+lib3mf lets go of the GIL while it works (ctypes), so the export stage writes 3MF files on a worker thread beside
+its other work; one lock keeps lib3mf itself to one thread at a time, since it does not promise more.
 """
 
 from __future__ import annotations
 
 import ctypes
+import threading
 import uuid
 from pathlib import Path
 from typing import Optional, Sequence
@@ -29,6 +33,7 @@ DEFAULT_ACCENT = (64, 64, 64)
 _NAMESPACE = uuid.UUID("6c1f3f0e-3a51-4f53-9d3c-7a0c2b6e5a11")
 
 _wrapper = None
+_LOCK = threading.Lock()
 
 
 def _lib():
@@ -138,12 +143,18 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
     path = Path(path)
-    _, L, w = _lib()
     objects = [_check_object(path, k, o) for k, o in enumerate(objects)]
     if not objects:
         raise ExportError(f"{path}: nothing to write (got 0 objects, expected at least 1)")
     if materials is not None and len(materials) != len(objects):
         raise ExportError(f"{path}: materials: got {len(materials)} entries, expected one per object ({len(objects)})")
+    with _LOCK:
+        _write_model(path, objects, unit, materials, accent_rgb)
+    return path
+
+
+def _write_model(path, objects, unit, materials, accent_rgb) -> None:
+    _, L, w = _lib()
     try:
         model = w.CreateModel()
         model.SetUnit(_unit_enum(L, unit))
@@ -184,7 +195,6 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
         raise
     except Exception as e:  # lib3mf raises ELib3MFException; OSError from mkdir
         raise ExportError(f"{path}: could not write 3MF: {e}") from e
-    return path
 
 
 def _get_geometry(L, w, mesh_obj):
@@ -228,6 +238,11 @@ def read_3mf(path, strict: bool = True, with_units: bool = False):
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"{path}: no such 3MF file")
+    with _LOCK:
+        return _read_model(path, strict, with_units)
+
+
+def _read_model(path, strict, with_units):
     _, L, w = _lib()
     try:
         model = w.CreateModel()
