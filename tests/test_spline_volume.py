@@ -85,6 +85,25 @@ def test_clamps_outside_domain_and_nan():
 
 
 @pytest.mark.parametrize("rational", [False, True])
+@pytest.mark.parametrize("degrees,counts", [((3, 3, 3), (7, 24, 5)), ((2, 3, 1), (21, 6, 3))])
+def test_compiled_kernels_match_numpy(degrees, counts, rational):
+    # the tricubic kernel and the general one, in the serial (small batch) and parallel (large batch) runs, with
+    # few elements (branch-free search) and many (binary search); NaN stays NaN and outside points clamp
+    rng = np.random.default_rng(11)
+    vol = random_volume(rng, degrees, counts, rational)
+    uvw = rng.uniform(-2.5, 3.5, (6000, 3))
+    uvw[:50] = vol.knots[1][rng.integers(0, len(vol.knots[1]), 50)][:, None]  # exactly on knots
+    uvw[50, 1] = np.nan
+    want = vol._project(*vol._numpy_sums(np.nan_to_num(uvw, nan=0.0), False))[0]
+    for batch in (uvw, uvw[:300]):
+        got = vol.evaluate(batch)
+        assert np.all(np.isnan(got[50]))
+        ok = np.ones(len(batch), dtype=bool)
+        ok[50] = False
+        np.testing.assert_allclose(got[ok], want[:len(batch)][ok], atol=1e-12)
+
+
+@pytest.mark.parametrize("rational", [False, True])
 def test_grid_matches_scattered(rational):
     rng = np.random.default_rng(5)
     vol = random_volume(rng, (3, 1, 2), (5, 3, 6), rational)
