@@ -57,7 +57,9 @@ def _paint(draw, tris, cols, box):
     right, up, eye = _view_axes()
     x = tris @ right
     y = tris @ up
-    depth = (tris @ eye).mean(axis=1)
+    # by each triangle's nearest corner: long cut faces inside the assembled puzzle then go under its skin, which
+    # sorting by the mean lets them paint streaks over
+    depth = (tris @ eye).max(axis=1)
     lo = np.array([x.min(), y.min()])
     span = np.maximum(np.array([x.max(), y.max()]) - lo, 1e-9)
     x0, y0, x1, y1 = box
