@@ -94,13 +94,16 @@ def test_compiled_kernels_match_numpy(degrees, counts, rational):
     uvw = rng.uniform(-2.5, 3.5, (6000, 3))
     uvw[:50] = vol.knots[1][rng.integers(0, len(vol.knots[1]), 50)][:, None]  # exactly on knots
     uvw[50, 1] = np.nan
-    want = vol._project(*vol._numpy_sums(np.nan_to_num(uvw, nan=0.0), False))[0]
+    want, want_d = vol._project(*vol._numpy_sums(np.nan_to_num(uvw, nan=0.0), True))
     for batch in (uvw, uvw[:300]):
         got = vol.evaluate(batch)
-        assert np.all(np.isnan(got[50]))
+        got2, got_d = vol.evaluate_with_derivatives(batch)
+        assert np.all(np.isnan(got[50])) and np.all(np.isnan(got_d[50]))
         ok = np.ones(len(batch), dtype=bool)
         ok[50] = False
         np.testing.assert_allclose(got[ok], want[:len(batch)][ok], atol=1e-12)
+        np.testing.assert_allclose(got2[ok], want[:len(batch)][ok], atol=1e-12)
+        np.testing.assert_allclose(got_d[ok], want_d[:len(batch)][ok], atol=1e-9 * np.abs(want_d).max())
 
 
 @pytest.mark.parametrize("rational", [False, True])
