@@ -307,3 +307,69 @@ def test_engraving_too_small_a_label_names_the_piece():
     block = m3.Manifold.cube((30.0, 12.0, 5.0), True).translate((0, 0, -2.5))
     with pytest.raises(GeometryError, match=r"p1-2-3: label 'p0-0-0' at 2.00 mm is too small to print"):
         L.engrave(block, _flat_site(height=2.0), what="p1-2-3")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# fast paths agree with the plain computations they replace
+
+
+def test_outline_fast_path_matches_segment_by_segment():
+    from matplotlib.textpath import TextPath
+
+    for text in ("p0-1-3", "p19-8-46", "ABCxyz&%"):
+        fast, box = L._outline(text)
+        slow, slow_box = L._outline_slow(TextPath((0.0, 0.0), text, size=1.0, prop=L._font()))
+        assert len(fast) == len(slow) and np.allclose(box, slow_box, rtol=0, atol=1e-12)
+        assert all(a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-12) for a, b in zip(fast, slow))
+
+
+def test_pruned_heights_equal_the_brute_force_minimum():
+    rng = np.random.default_rng(7)
+    # a wavy closed outline and two joint axes, as _candidates builds them
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    edge = np.stack([30 * np.cos(t), 12 * np.sin(t) + 0.5 * np.sin(9 * t), 0.3 * np.cos(3 * t)], 1)
+    axes = np.concatenate([np.stack([np.full(120, x), np.full(120, y), np.linspace(-15, 15, 120)], 1)
+                           for x, y in ((-12.0, 2.0), (14.0, -3.0))])
+    r = np.full(len(axes), 3.5)
+    pts = np.concatenate([edge, axes])
+    pad = np.concatenate([np.full(len(edge), L.MARGIN_MM), r])
+    lo = np.concatenate([np.full(len(edge), -np.inf), -(L.DEPTH_MM + 2.0 + r)])
+    hi = np.concatenate([np.full(len(edge), np.inf), L.TOP_MM + 2.0 + r])
+    x0 = np.concatenate([rng.uniform([-25, -9, -0.2], [25, 9, 0.2], (300, 3)), np.zeros((1, 3))])
+    normal = rng.normal([0, 0, 1], 0.1, (len(x0), 3))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    up = np.cross(normal, rng.normal(size=(len(x0), 3)))
+    up /= np.linalg.norm(up, axis=1)[:, None]
+    right = np.cross(up, normal)
+    aspect, cap, hmin = 3.7, 8.0, 2.0
+    got = L._heights_allowed(L._keep_out(pts, pad, lo, hi), x0, normal, right, up, aspect, cap, hmin)
+    lim = L._limit(pts, x0, right, up, pad, aspect)
+    z = pts @ normal.T - np.einsum("ki,ki->k", x0, normal)
+    lim[(z <= lo[:, None]) | (z >= hi[:, None])] = np.inf
+    want = np.minimum(lim.min(axis=0), cap)
+    held = want >= hmin
+    assert held.sum() > 20 and (~held).sum() > 20  # both kinds of centre are tried
+    assert np.allclose(got[held], want[held], rtol=0, atol=1e-9)
+    assert np.all(got[~held] < hmin)
+
+
+def test_measured_heights_match_one_ray_per_sample():
+    vol = _bent()
+    fmap = Map(vol)
+    tiling = tile(vol, (1, 2, 1))
+    cell = tiling.cell((0, 1, 0))
+    body = G.from_trimesh(C.build_piece(cell, tiling, C.sample_parameters(tiling, fmap, 0.05), fmap, []).mesh, cell.id)
+    site = L.choose_label_site(cell, tiling, fmap, [])
+    got = L._measured_heights(body, site)
+    frame, want = site.frame(), np.array(site.heights, dtype=float)
+    span = float(want.max() - want.min()) + 2.0
+    for j, y in enumerate(site.grid_y):
+        for i, x in enumerate(site.grid_x):
+            top = frame[:, 3] + frame[:, 0] * x + frame[:, 1] * y + frame[:, 2] * (site.heights[j, i] + span)
+            hits = body.ray_cast(tuple(top), tuple(top - frame[:, 2] * (2 * span)))
+            if hits:
+                z = float((np.asarray(hits[0].position) - frame[:, 3]) @ frame[:, 2])
+                if abs(z - want[j, i]) < 0.5:
+                    want[j, i] = z
+    assert np.abs(got - site.heights).max() > 1e-4  # the body's facets, not F
+    assert np.allclose(got, want, rtol=0, atol=1e-9)
