@@ -258,3 +258,68 @@ def test_turned_joints_follow_the_split_and_still_come_apart():
         assert new.base_depth >= old.base_depth
     pieces = C.compose(t, fmap, turned, 1.0)
     _assert_comes_apart(A.verify_disassembly(pieces, turned, plan), [p.id for p in pieces])
+
+
+def test_parts_of_a_piece_cover_it_along_every_direction():
+    _, _, _, pieces = _built("bent")
+    for pid, mesh in pieces.items():
+        ext = A._chunk_extents(mesh.vertices, mesh.faces)
+        pts, _ = __import__("trimesh").sample.sample_surface(mesh, 2000, seed=1)
+        proj = pts @ A._DIRS.T
+        # every surface point (and so every point of the solid, see _chunk_extents) lies in some part's extents
+        inside = ((proj[:, None, :] >= ext[None, :, 0, :] - 1e-9) & (proj[:, None, :] <= ext[None, :, 1, :] + 1e-9))
+        assert inside.all(axis=2).any(axis=1).all(), pid
+        # together the parts span exactly the piece, each a good deal less
+        vproj = np.asarray(mesh.vertices) @ A._DIRS.T
+        assert np.allclose(ext[:, 0].min(axis=0), vproj.min(axis=0)) and np.allclose(ext[:, 1].max(axis=0),
+                                                                                      vproj.max(axis=0))
+        assert len(ext) > 1 and np.all(((ext[:, 1] - ext[:, 0]) < 0.8 * np.ptp(vproj, axis=0)).any(axis=1))
+
+
+def test_the_sweep_skips_only_samples_that_cannot_collide():
+    """Every sample the broad phase rules out is measured anyway: none overlaps beyond the limit, also along
+    directions that drive the blocks into each other, and the sweep reports the earliest collision."""
+    _, plan, joints, pieces = _built("bent")
+    scene = A._Scene(pieces)
+    skipped = collided = 0
+    for step in plan.steps[:3]:
+        moving, fixed = [A.piece_id(c) for c in step.moving], [A.piece_id(c) for c in step.fixed]
+        d0, _ = A._direction(A._across(joints, step.moving, step.fixed), step.moving, step.fixed)
+        side = np.cross(d0, [0.3, 0.5, 0.8])
+        for d in (d0, -d0, side / np.linalg.norm(side)):
+            ts = scene.samples(moving, fixed, d, 1.0)
+            first = None
+            for k, t in enumerate(ts):
+                for pm in moving:
+                    for pf in fixed:
+                        lim = 1e-4 * min(scene.vol[pm], scene.vol[pf])
+                        if scene._may_meet(pm, pf, ts[k:k + 1], d, lim)[0]:
+                            continue
+                        skipped += 1
+                        assert A._overlap(scene.man[pm].translate(tuple(t * d)), scene.man[pf]) <= lim
+                    if first is None:
+                        hits = [pf for pf in fixed
+                                if A._overlap(scene.man[pm].translate(tuple(t * d)), scene.man[pf])
+                                > 1e-4 * min(scene.vol[pm], scene.vol[pf])]
+                        if hits:
+                            first = t
+            ok, hit = scene.sweep_clear(moving, fixed, d, 1.0, 1e-4)
+            assert ok == (first is None)
+            if not ok:
+                collided += 1
+                assert hit[2] == pytest.approx(first)
+    assert skipped > 50 and collided >= 3
+
+
+def test_a_collision_halfway_along_the_sweep_is_caught():
+    """Two boxes with a gap: the moving one is clear for 5 mm, then runs into the fixed one; pruning must not hide
+    the hit, and the first colliding sample is the one reported."""
+    import trimesh
+
+    a = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    b = trimesh.creation.box(extents=(10.0, 10.0, 10.0)).apply_translation([15.0, 3.0, 0.0])
+    scene = A._Scene({"p0-0-0": a, "p1-0-0": b})
+    ok, hit = scene.sweep_clear(["p0-0-0"], ["p1-0-0"], np.array([1.0, 0.0, 0.0]), 1.0, 1e-4)
+    assert not ok and hit[:2] == ("p0-0-0", "p1-0-0") and hit[2] == pytest.approx(5.05)
+    ok, _ = scene.sweep_clear(["p0-0-0"], ["p1-0-0"], np.array([0.0, 0.0, 1.0]), 1.0, 1e-4)
+    assert ok

@@ -6,7 +6,7 @@ import trimesh
 from hypothesis import given, settings, strategies as st
 
 from volpuzzle.check import (assert_passed, candidate_pairs, check_directory, check_pieces, closed_problem,
-                             overlap_volume, shifted_overlap, signed_volume)
+                             overlap_volume, piece_solid, shifted_overlap, signed_volume)
 from volpuzzle.geometry import manifold_from_mesh
 from volpuzzle.errors import GeometryError, VolpuzzleError
 
@@ -111,3 +111,25 @@ def test_candidate_pairs_skip_touching_boxes():
 def test_check_directory_refuses_a_folder_without_report(tmp_path):
     with pytest.raises(VolpuzzleError, match="no report.json"):
         check_directory(tmp_path)
+
+
+def test_a_mesh_is_converted_and_judged_once_until_it_changes():
+    box = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    solid = piece_solid(box, "p0-0-0")
+    assert piece_solid(box, "p0-0-0") is solid and closed_problem(box) is None
+    # an equal copy is another object with its own solid
+    assert piece_solid(box.copy(), "p0-0-0") is not solid
+    box.apply_translation([3.0, 0.0, 0.0])
+    moved = piece_solid(box, "p0-0-0")
+    assert moved is not solid and moved.bounding_box()[0] == pytest.approx(-2.0)
+    box.update_faces(np.arange(len(box.faces) - 1))
+    assert "not watertight" in closed_problem(box)
+    assert isinstance(piece_solid(box, "p0-0-0"), str)
+
+
+def test_checks_on_solids_made_earlier_still_see_a_moved_piece():
+    pieces = split_box()
+    assert check_pieces(pieces, 8000.0)["passed"]
+    pieces[0][1].apply_translation([1.0, 0.0, 0.0])  # the same mesh object, edited after its first check
+    checks = check_pieces(pieces, 8000.0)
+    assert not checks["passed"] and checks["max_overlap_pair"] == ["p0-0-0", "p1-0-0"]

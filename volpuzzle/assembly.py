@@ -369,9 +369,12 @@ def reorient_joints(joints, tiling, fmap, plan):
 
 
 def _as_manifold(mesh, pid):
-    from .geometry import manifold_from_mesh
+    from .check import piece_solid
 
-    return manifold_from_mesh(mesh.vertices, mesh.faces, f"piece {pid}", keep_faces=False)
+    solid = piece_solid(mesh, pid)
+    if isinstance(solid, str):
+        raise GeometryError(f"assembly check: {solid}")
+    return solid
 
 
 def _overlap(a, b):
@@ -383,48 +386,129 @@ def _overlap(a, b):
     return float(inter.volume())
 
 
+def _directions(n=256):
+    """n unit vectors spread evenly over the sphere (a Fibonacci lattice) plus the six axis directions."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    return np.concatenate([np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1), np.eye(3), -np.eye(3)])
+
+
+_DIRS = _directions()
+
+
+def _chunk_extents(verts, faces, chunks=8):
+    """(chunks, 2, k) least and greatest projections onto _DIRS of `chunks` parts of a closed mesh that together
+    cover its solid: the piece cut into slabs across its longest principal axis, each part being the corners of
+    every triangle that reaches into its slab. A slab of the solid lies in the convex hull of the surface inside it
+    (its cut faces are bounded by that surface), so two pieces whose parts are pairwise apart along some direction
+    cannot overlap; parts fit a long curved piece far tighter than one hull."""
+    v = np.asarray(verts, dtype=float)
+    f = np.asarray(faces, dtype=np.int64)
+    c = v - v.mean(axis=0)
+    axis = np.linalg.svd(c[:: max(1, len(c) // 2000)], full_matrices=False)[2][0]
+    s = v @ axis
+    ts = s[f]
+    cuts = np.linspace(float(s.min()), float(s.max()), chunks + 1)
+    # slabs k with cuts[k] <= hi and lo <= cuts[k + 1] hold the triangle; each corner joins every slab of its
+    # triangles, a run from k0 to k1
+    first = np.clip(np.searchsorted(cuts[1:], ts.min(axis=1), side="left"), 0, chunks - 1)
+    last = np.clip(np.searchsorted(cuts[:-1], ts.max(axis=1), side="right") - 1, 0, chunks - 1)
+    k0 = np.full(len(v), chunks, dtype=np.int64)
+    k1 = np.full(len(v), -1, dtype=np.int64)
+    for j in range(3):
+        np.minimum.at(k0, f[:, j], first)
+        np.maximum.at(k1, f[:, j], last)
+    used = k1 >= 0
+    n_k = np.where(used, k1 - k0 + 1, 0)
+    vid = np.repeat(np.arange(len(v)), n_k)
+    kid = np.repeat(k0, n_k) + (np.arange(len(vid)) - np.repeat(np.cumsum(n_k) - n_k, n_k))
+    order = np.argsort(kid, kind="stable")
+    vid, kid = vid[order], kid[order]
+    proj = _DIRS @ v[vid].T  # (directions, corners): each part's corners are a contiguous run of a row
+    starts = np.flatnonzero(np.r_[True, kid[1:] != kid[:-1]])
+    return np.stack([np.minimum.reduceat(proj, starts, axis=1).T, np.maximum.reduceat(proj, starts, axis=1).T], axis=1)
+
+
 class _Scene:
     """Pieces as manifolds with their vertices, boxes and volumes; counts the Booleans."""
 
     def __init__(self, pieces):
         self.ids = sorted(pieces)
-        self.man, self.verts, self.box, self.vol = {}, {}, {}, {}
+        self.man, self.verts, self.box, self.vol, self._faces, self._ext = {}, {}, {}, {}, {}, {}
         for pid in self.ids:
             mesh = pieces[pid]
             mesh = getattr(mesh, "mesh", mesh)
             self.man[pid] = _as_manifold(mesh, pid)
             self.verts[pid] = np.asarray(mesh.vertices, dtype=float)
+            self._faces[pid] = np.asarray(mesh.faces)
             self.box[pid] = np.array([self.verts[pid].min(axis=0), self.verts[pid].max(axis=0)])
             self.vol[pid] = float(self.man[pid].volume())
         self.booleans = 0
 
-    def sweep_clear(self, moving, fixed, d, fine, limit_frac):
-        """True when `moving` (ids) can travel along unit d (3,) until it is past every fixed piece, sampled every
-        `fine` mm over the first pin length and coarser beyond; else (False, (moving id, fixed id, mm))."""
+    def extents(self, pid):
+        if pid not in self._ext:
+            self._ext[pid] = _chunk_extents(self.verts[pid], self._faces[pid])
+        return self._ext[pid]
+
+    def _may_meet(self, pm_id, pf_id, ts, d, lim):
+        """Bool per offset in ts: whether moving pm_id by t * d might make it overlap pf_id by more than lim.
+        False is a proof: the boxes share at most lim, or every part of the one lies apart from every part of the
+        other along one of _DIRS."""
+        blo = self.box[pm_id][0] + ts[:, None] * d
+        bhi = self.box[pm_id][1] + ts[:, None] * d
+        common = np.clip(np.minimum(bhi, self.box[pf_id][1]) - np.maximum(blo, self.box[pf_id][0]), 0.0, None)
+        out = np.prod(common, axis=1) > lim
+        if not out.any():
+            return out
+        em, ef = self.extents(pm_id), self.extents(pf_id)
+        along = _DIRS @ d
+        # (t, moving part, fixed part, direction)
+        shift = ts[:, None, None, None] * along
+        apart = ((em[None, :, None, 1, :] + shift <= ef[None, None, :, 0, :])
+                 | (em[None, :, None, 0, :] + shift >= ef[None, None, :, 1, :])).any(axis=3)
+        return out & ~apart.all(axis=(1, 2))
+
+    def samples(self, moving, fixed, d, fine):
+        """Offsets (mm along unit d) at which `moving` is tested against `fixed`: every `fine` mm from 0.05 over the
+        first pin lengths, then coarser until moving is past every fixed piece (none when it already is)."""
         pm = np.concatenate([self.verts[p] @ d for p in moving])
         pf = np.concatenate([self.verts[p] @ d for p in fixed])
         total = float(pf.max() - pm.min()) + 0.1
         if total <= 0:
-            return True, None
+            return np.zeros(0)
         near = min(total, 3.0 * fine * 4 + 2.0)
-        ts = list(np.arange(0.05, near, fine)) + list(np.arange(near, total + 2.0, max(2.0, total / 15)))
+        return np.array(list(np.arange(0.05, near, fine)) + list(np.arange(near, total + 2.0, max(2.0, total / 15))))
+
+    def sweep_clear(self, moving, fixed, d, fine, limit_frac):
+        """True when `moving` (ids) can travel along unit d (3,) until it is past every fixed piece, sampled every
+        `fine` mm over the first pin length and coarser beyond; else (False, (moving id, fixed id, mm)).
+
+        A sample of a pair is measured with a Boolean only where their boxes and their parts' extents (see
+        _chunk_extents) cannot rule an overlap out; the samples are taken in order of travel, so the first
+        collision found is the earliest."""
+        d = np.asarray(d, dtype=float)
+        ts = self.samples(moving, fixed, d, fine)
+        if len(ts) == 0:
+            return True, None
         limit = {p: limit_frac * self.vol[p] for p in self.ids}
-        for t in ts:
-            shift = t * d
-            for pm_id in moving:
-                blo, bhi = self.box[pm_id][0] + shift, self.box[pm_id][1] + shift
-                moved = None
-                for pf_id in fixed:
-                    lo = np.maximum(blo, self.box[pf_id][0])
-                    hi = np.minimum(bhi, self.box[pf_id][1])
-                    lim = min(limit[pm_id], limit[pf_id])
-                    if np.any(hi <= lo) or float(np.prod(hi - lo)) <= lim:
-                        continue
-                    if moved is None:
-                        moved = self.man[pm_id].translate(tuple(shift))
-                    self.booleans += 1
-                    if _overlap(moved, self.man[pf_id]) > lim:
-                        return False, (pm_id, pf_id, float(t))
+        todo = []
+        for a, pm_id in enumerate(moving):
+            for b, pf_id in enumerate(fixed):
+                lim = min(limit[pm_id], limit[pf_id])
+                for k in np.flatnonzero(self._may_meet(pm_id, pf_id, ts, d, lim)):
+                    todo.append((int(k), a, b, lim))
+        todo.sort()
+        moved = {}
+        for k, a, b, lim in todo:
+            t = float(ts[k])
+            pm_id, pf_id = moving[a], fixed[b]
+            if (a, k) not in moved:
+                moved[(a, k)] = self.man[pm_id].translate(tuple(t * d))
+            self.booleans += 1
+            if _overlap(moved[(a, k)], self.man[pf_id]) > lim:
+                return False, (pm_id, pf_id, t)
         return True, None
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+import weakref
 from pathlib import Path
 from typing import Sequence, Tuple
 
@@ -17,7 +18,28 @@ import trimesh
 from .errors import GeometryError, ModelError, VolpuzzleError
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
-           "candidate_pairs", "failure_message", "assert_passed", "check_directory"]
+           "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid"]
+
+# id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
+# (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
+# assembly replay), and a conversion or a closedness test costs milliseconds per piece.
+_MEMO = {}
+
+
+def _memo(mesh, what, make):
+    """make(), computed once per mesh object and kind of result while the mesh's content stays the same (a
+    trimesh hashes its arrays and notices its own edits; other objects are not remembered)."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        return make()
+    h = hash(mesh)
+    key = id(mesh)
+    entry = _MEMO.get(key)
+    if entry is None or entry[0]() is not mesh or entry[1] != h:
+        entry = (weakref.ref(mesh, lambda _, key=key: _MEMO.pop(key, None)), h, {})
+        _MEMO[key] = entry
+    if what not in entry[2]:
+        entry[2][what] = make()
+    return entry[2][what]
 
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -34,6 +56,10 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 def closed_problem(mesh: trimesh.Trimesh):
     """None if the mesh is a closed solid (watertight, consistently wound, one body, positive volume),
     else a short description of what is wrong."""
+    return _memo(mesh, "closed", lambda: _closed_problem(mesh))
+
+
+def _closed_problem(mesh):
     if len(mesh.faces) == 0:
         return "no triangles"
     # Merge coincident vertices first: what a reader of the STL sees is the welded mesh.
@@ -52,14 +78,19 @@ def closed_problem(mesh: trimesh.Trimesh):
     return None
 
 
-def _manifold(mesh: trimesh.Trimesh, pid: str):
-    """manifold3d.Manifold of a closed mesh, or the engine's complaint as a string."""
-    from .geometry import manifold_from_mesh
+def piece_solid(mesh: trimesh.Trimesh, pid: str):
+    """manifold3d.Manifold of a closed mesh, or the engine's complaint as a string; made once per mesh, so the
+    overlap check, the joint check and the assembly replay share it (treat it as read-only)."""
+    def make():
+        from .geometry import manifold_from_mesh
 
-    try:
-        return manifold_from_mesh(mesh.vertices, mesh.faces, f"piece {pid}", keep_faces=False)
-    except GeometryError as e:
-        return str(e)
+        try:
+            return manifold_from_mesh(mesh.vertices, mesh.faces, f"piece {pid}", keep_faces=False)
+        except GeometryError as e:
+            return str(e)
+
+    return _memo(mesh, "solid", make)
+
 
 
 def overlap_volume(a, b) -> float:
@@ -149,7 +180,7 @@ def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_
         for a, b in pairs:
             for k in (a, b):
                 if k not in solids:
-                    solids[k] = _manifold(meshes[good[k]], ids[good[k]])
+                    solids[k] = piece_solid(meshes[good[k]], ids[good[k]])
                     if isinstance(solids[k], str):
                         failures.append(f"{solids[k]}; its overlaps were not measured")
             if isinstance(solids[a], str) or isinstance(solids[b], str):
@@ -240,7 +271,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> l
 
     def solid(pid):
         if pid not in solids:
-            m = _manifold(meshes[pid], pid)
+            m = piece_solid(meshes[pid], pid)
             solids[pid] = m if not isinstance(m, str) else None
         return solids[pid]
 
