@@ -72,9 +72,8 @@ def _outline(text):
         return (), np.zeros((2, 2))
     path = TextPath((0.0, 0.0), text, size=1.0, prop=_font())
     verts, codes = np.asarray(path.vertices, dtype=float), path.codes
-    if codes is None or np.isin(codes, (Path.CURVE4,)).any() or not np.isin(
-            codes, (Path.MOVETO, Path.LINETO, Path.CURVE3, Path.CLOSEPOLY, Path.STOP)).all():
-        return _outline_slow(path)
+    if codes is None or not np.isin(codes, (Path.MOVETO, Path.LINETO, Path.CURVE3, Path.CLOSEPOLY, Path.STOP)).all():
+        return _outline_slow(path)  # cubic curves (not in TrueType fonts) or anything else unexpected
     # Every step of a loop as a quadratic Bezier (p0, p1, p2) sampled n times: a line is (prev, end, end) once, whose
     # one sample at t = 1 is its end point exactly. The samples are then computed all at once.
     starts, steps, loop_of = [], [], []
@@ -448,13 +447,12 @@ def _on_face(cell, fmap, a, uvw0, center, normal, up, target, st, inv=None):
         # well (a chord step), and the map evaluates in a third of the time without its derivatives
         if fresh:
             x, jac = fmap.evaluate_with_jacobian(uvw)
-        else:
-            x = fmap.evaluate(uvw)
-        if fresh:
             j = np.einsum("nik,ir->nrk", jac[:, :, [b, c]], proj)  # d (x, y) / d (s, t)
             det = j[:, 0, 0] * j[:, 1, 1] - j[:, 0, 1] * j[:, 1, 0]
             inv = np.stack([np.stack([j[:, 1, 1], -j[:, 0, 1]], 1), np.stack([-j[:, 1, 0], j[:, 0, 0]], 1)], 1)
-            inv /= det[:, None, None]
+            inv /= np.where(det == 0.0, np.inf, det)[:, None, None]  # a collapsed spot takes no step, never converges
+        else:
+            x = fmap.evaluate(uvw)
         err = (x - center) @ proj - target
         worst = float(np.sqrt((err * err).sum(axis=1)).max())
         if worst < 1e-7:
