@@ -462,13 +462,25 @@ class _Scene:
         out = np.prod(common, axis=1) > lim
         if not out.any():
             return out
+        lo, hi = self._meeting_times(pm_id, pf_id, d)
+        return out & ((lo[None, :] < ts[:, None]) & (ts[:, None] < hi[None, :])).any(axis=1)
+
+    def _meeting_times(self, pm_id, pf_id, d):
+        """Per pair of parts (moving part, fixed part): the open interval of offsets t at which they are apart
+        along none of _DIRS, as (lo (m,), hi (m,)). Along direction e the parts, the moving one shifted by t * d,
+        overlap in projection only while fixed least - moving greatest < t (d.e) < fixed greatest - moving least."""
         em, ef = self.extents(pm_id), self.extents(pf_id)
-        along = _DIRS @ d
-        # (t, moving part, fixed part, direction)
-        shift = ts[:, None, None, None] * along
-        apart = ((em[None, :, None, 1, :] + shift <= ef[None, None, :, 0, :])
-                 | (em[None, :, None, 0, :] + shift >= ef[None, None, :, 1, :])).any(axis=3)
-        return out & ~apart.all(axis=(1, 2))
+        s = _DIRS @ d
+        a = ef[None, :, 0, :] - em[:, None, 1, :]  # (moving part, fixed part, direction)
+        b = ef[None, :, 1, :] - em[:, None, 0, :]
+        along = np.abs(s) > 1e-12
+        safe = np.where(along, s, 1.0)
+        sa, sb = a / safe, b / safe
+        # across d a direction separates at every offset or at none
+        always = (a < 0) & (b > 0)
+        t_lo = np.where(along, np.minimum(sa, sb), np.where(always, -np.inf, np.inf))
+        t_hi = np.where(along, np.maximum(sa, sb), np.where(always, np.inf, -np.inf))
+        return t_lo.max(axis=2).ravel(), t_hi.min(axis=2).ravel()
 
     def samples(self, moving, fixed, d, fine):
         """Offsets (mm along unit d) at which `moving` is tested against `fixed`: every `fine` mm from 0.05 over the
