@@ -630,9 +630,9 @@ def _measured_heights(body, site):
     with np.errstate(divide="ignore", invalid="ignore"):
         wb = (qx * e2y - qy * e2x) / det
         wc = (e1x * qy - e1y * qx) / det
-    eps = 1e-9  # a ray through an edge or a corner hits both sides; either gives the same height
-    inside = (np.abs(det) > 1e-15) & (wb >= -eps) & (wc >= -eps) & (wb + wc <= 1 + eps)
-    z = a[:, 2] + wb * (b[:, 2] - a[:, 2]) + wc * (c[:, 2] - a[:, 2])
+        z = a[:, 2] + wb * (b[:, 2] - a[:, 2]) + wc * (c[:, 2] - a[:, 2])  # not finite for edge-on triangles
+        eps = 1e-9  # a ray through an edge or a corner hits both sides; either gives the same height
+        inside = (np.abs(det) > 1e-15) & (wb >= -eps) & (wc >= -eps) & (wb + wc <= 1 + eps)
     ref = h[gj, gi]
     inside &= (z >= ref - span) & (z <= ref + span)
     first = np.full(h.shape, -np.inf)  # the first hit going down is the highest
