@@ -411,21 +411,23 @@ def _printable(pieces):
 
     import trimesh
 
-    from .check import closed_problem
+    from .check import closed_problem, signed_volume
     from .geometry import weld
 
     out = []
     for p in pieces:
-        v32 = np.asarray(p.mesh.vertices, dtype=np.float32).astype(np.float64)
-        uniq, inverse = np.unique(v32, axis=0, return_inverse=True)
-        v, f = weld(uniq, inverse.reshape(-1)[p.mesh.faces], 0.0)
+        # + 0 turns -0.0 into 0.0, so that equal coordinates have equal bytes; a byte-wise unique is ~3x faster
+        # than np.unique(axis=0)
+        v32 = np.ascontiguousarray(np.asarray(p.mesh.vertices, dtype=np.float32) + np.float32(0.0))
+        _, first, inverse = np.unique(v32.view(np.dtype((np.void, 12))).ravel(), return_index=True,
+                                      return_inverse=True)
+        v, f = weld(v32[first].astype(np.float64), inverse.reshape(-1)[p.mesh.faces], 0.0)
         mesh = trimesh.Trimesh(v, f, process=False)
-        mesh.remove_unreferenced_vertices()
         problem = closed_problem(mesh)
         if problem:
             raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
                                 f"3MF files ({problem}); try a smaller output.tolerance")
-        out.append(dataclasses.replace(p, mesh=mesh, volume=float(mesh.volume), triangles=int(len(mesh.faces))))
+        out.append(dataclasses.replace(p, mesh=mesh, volume=signed_volume(v, f), triangles=int(len(f))))
     out = _like(pieces, out)
     return out
 
