@@ -69,16 +69,22 @@ def _element(br, E, t):
     return lo
 
 
-@njit(cache=True, fastmath=_FM, nogil=True)
-def _basis(br, invh, ext, p, t, N, dN, B, want_der):
-    """Element index of t (clamped) and the p+1 basis values (and derivatives) in N (dN)."""
+@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+def _locate(br, invh, t):
+    """Element of t, clamped to the breaks br (E+1,), and t's local coordinate in it, in [0, 1]."""
     E = br.shape[0] - 1
     if t < br[0]:
         t = br[0]
     if t > br[E]:
         t = br[E]
     lo = _element(br, E, t)
-    s = (t - br[lo]) * invh[lo]
+    return lo, (t - br[lo]) * invh[lo]
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def _basis(br, invh, ext, p, t, N, dN, B, want_der):
+    """Element index of t (clamped) and the p+1 basis values (and derivatives) in N (dN)."""
+    lo, s = _locate(br, invh, t)
     r1 = 1.0 - s
     B[0] = 1.0
     for j in range(1, p):
@@ -349,25 +355,20 @@ def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw,
 
 
 @njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+def _extract4(x, b0, b1, b2, b3):
+    """The 4x4 extraction matrix x applied to four Bernstein values (or derivatives)."""
+    return (x[0, 0] * b0 + x[0, 1] * b1 + x[0, 2] * b2 + x[0, 3] * b3,
+            x[1, 0] * b0 + x[1, 1] * b1 + x[1, 2] * b2 + x[1, 3] * b3,
+            x[2, 0] * b0 + x[2, 1] * b1 + x[2, 2] * b2 + x[2, 3] * b3,
+            x[3, 0] * b0 + x[3, 1] * b1 + x[3, 2] * b2 + x[3, 3] * b3)
+
+
+@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
 def _cubic(br, invh, ext, t):
     """Element of t (clamped) and its four cubic basis values, all in registers."""
-    E = br.shape[0] - 1
-    if t < br[0]:
-        t = br[0]
-    if t > br[E]:
-        t = br[E]
-    lo = _element(br, E, t)
-    s = (t - br[lo]) * invh[lo]
+    lo, s = _locate(br, invh, t)
     r = 1.0 - s
-    b0 = r * r * r
-    b1 = 3.0 * s * r * r
-    b2 = 3.0 * s * s * r
-    b3 = s * s * s
-    x = ext[lo]
-    n0 = x[0, 0] * b0 + x[0, 1] * b1 + x[0, 2] * b2 + x[0, 3] * b3
-    n1 = x[1, 0] * b0 + x[1, 1] * b1 + x[1, 2] * b2 + x[1, 3] * b3
-    n2 = x[2, 0] * b0 + x[2, 1] * b1 + x[2, 2] * b2 + x[2, 3] * b3
-    n3 = x[3, 0] * b0 + x[3, 1] * b1 + x[3, 2] * b2 + x[3, 3] * b3
+    n0, n1, n2, n3 = _extract4(ext[lo], r * r * r, 3.0 * s * r * r, 3.0 * s * s * r, s * s * s)
     return lo, n0, n1, n2, n3
 
 
@@ -418,32 +419,13 @@ def _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw
 @njit(cache=True, fastmath=_FM, nogil=True, inline="always")
 def _cubic_der(br, invh, ext, t):
     """Element of t (clamped), its four cubic basis values and their four derivatives d/dt."""
-    E = br.shape[0] - 1
-    if t < br[0]:
-        t = br[0]
-    if t > br[E]:
-        t = br[E]
-    lo = _element(br, E, t)
+    lo, s = _locate(br, invh, t)
     h = invh[lo]
-    s = (t - br[lo]) * h
     r = 1.0 - s
-    b0 = r * r * r
-    b1 = 3.0 * s * r * r
-    b2 = 3.0 * s * s * r
-    b3 = s * s * s
-    d0 = -3.0 * r * r * h
-    d1 = 3.0 * r * (r - 2.0 * s) * h
-    d2 = 3.0 * s * (2.0 * r - s) * h
-    d3 = 3.0 * s * s * h
     x = ext[lo]
-    n0 = x[0, 0] * b0 + x[0, 1] * b1 + x[0, 2] * b2 + x[0, 3] * b3
-    n1 = x[1, 0] * b0 + x[1, 1] * b1 + x[1, 2] * b2 + x[1, 3] * b3
-    n2 = x[2, 0] * b0 + x[2, 1] * b1 + x[2, 2] * b2 + x[2, 3] * b3
-    n3 = x[3, 0] * b0 + x[3, 1] * b1 + x[3, 2] * b2 + x[3, 3] * b3
-    m0 = x[0, 0] * d0 + x[0, 1] * d1 + x[0, 2] * d2 + x[0, 3] * d3
-    m1 = x[1, 0] * d0 + x[1, 1] * d1 + x[1, 2] * d2 + x[1, 3] * d3
-    m2 = x[2, 0] * d0 + x[2, 1] * d1 + x[2, 2] * d2 + x[2, 3] * d3
-    m3 = x[3, 0] * d0 + x[3, 1] * d1 + x[3, 2] * d2 + x[3, 3] * d3
+    n0, n1, n2, n3 = _extract4(x, r * r * r, 3.0 * s * r * r, 3.0 * s * s * r, s * s * s)
+    m0, m1, m2, m3 = _extract4(x, -3.0 * r * r * h, 3.0 * r * (r - 2.0 * s) * h, 3.0 * s * (2.0 * r - s) * h,
+                               3.0 * s * s * h)
     return lo, n0, n1, n2, n3, m0, m1, m2, m3
 
 
