@@ -106,7 +106,8 @@ def test_compiled_kernels_match_numpy(degrees, counts, rational):
         np.testing.assert_allclose(got_d[ok], want_d[:len(batch)][ok], atol=1e-9 * np.abs(want_d).max())
     # the serial and the parallel runs give the very same bits, so a point's place in a batch never matters
     np.testing.assert_array_equal(vol.evaluate(uvw)[:1000], vol.evaluate(uvw[:1000]))
-    np.testing.assert_array_equal(vol.evaluate_with_derivatives(uvw)[1][:1000], vol.evaluate_with_derivatives(uvw[:1000])[1])
+    np.testing.assert_array_equal(vol.evaluate_with_derivatives(uvw)[1][:1000],
+                                  vol.evaluate_with_derivatives(uvw[:1000])[1])
 
 
 @pytest.mark.parametrize("rational", [False, True])
