@@ -37,7 +37,8 @@ MAX_SLOPE = 0.6  # |grad h| under the text; steeper, the face is too curved ther
 _STEM_EM = 0.178  # stem width of DejaVu Sans Bold in em, measured on '1' (0.2833 to 0.4609 at y = 0.4)
 _FLAT_EM = 0.002  # largest distance between a glyph curve and its polygon, em
 _SAMPLE_MM = 0.4  # spacing of surface samples under the text and of the face's boundary samples
-_REFINE_MM = 0.8  # longest edge of the prism before it is bent onto the surface
+_REFINE_MM = (0.8, 4.0)  # shortest and longest edge target of the prism before it is bent onto the surface
+_SAG_MM = 0.05  # extra groove depth accepted where a coarser prism floor spares triangles
 _CENTRES = np.linspace(0.05, 0.95, 19)  # candidate centres, fractions across the face
 
 
@@ -668,9 +669,12 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None):
     step = max(xs[1] - xs[0], ys[1] - ys[0])
 
     # The walls are bent along straight verticals, so only the footprint needs refining: a prism this thin keeps
-    # every wall edge (and its quads' diagonals) shorter than _REFINE_MM, so none of them is split.
+    # every wall edge (and its quads' diagonals) shorter than any target, so none of them is split. The floor's
+    # chords sag by curv * edge^2 / 8: on a gently curved face, longer edges cost at most _SAG_MM of extra depth
+    # and spare the piece (and every later stage) thousands of triangles.
     thick = 0.05
-    prism = m3.Manifold.extrude(cs, thick).refine_to_length(_REFINE_MM)
+    target = _REFINE_MM[1] if curv <= 0 else np.clip(np.sqrt(8.0 * _SAG_MM / curv), *_REFINE_MM)
+    prism = m3.Manifold.extrude(cs, thick).refine_to_length(float(target))
     # refining leaves some footprint edges longer than asked (up to ~1.7x): the sag allowance uses the real ones
     edge = _longest_edge(prism)
     allowance = site.error_mm + curv * (step ** 2 + edge ** 2) / 8.0 + 1e-3
