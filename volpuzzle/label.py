@@ -673,7 +673,8 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None):
     # chords sag by curv * edge^2 / 8: on a gently curved face, longer edges cost at most _SAG_MM of extra depth
     # and spare the piece (and every later stage) thousands of triangles.
     thick = 0.05
-    target = _REFINE_MM[1] if curv <= 0 else np.clip(np.sqrt(8.0 * _SAG_MM / curv), *_REFINE_MM)
+    # (refine_to_length leaves edges up to ~1.7x its target)
+    target = _REFINE_MM[1] if curv <= 0 else np.clip(np.sqrt(8.0 * _SAG_MM / curv) / 1.7, *_REFINE_MM)
     prism = m3.Manifold.extrude(cs, thick).refine_to_length(float(target))
     # refining leaves some footprint edges longer than asked (up to ~1.7x): the sag allowance uses the real ones
     edge = _longest_edge(prism)
