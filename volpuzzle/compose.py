@@ -654,18 +654,25 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
 
     rng = np.random.default_rng(20250101)
     err = np.full(len(tris), np.nan)
+    # per triangle, computed once when it is made: its edges' keys, which of them are interior, and its longest one
+    keys = np.zeros((len(tris), 3), dtype=np.int64)
+    interior = np.zeros((len(tris), 3), dtype=bool)
+    longest = np.zeros(len(tris), dtype=np.int64)
     for _round in range(4 * _ROUNDS):
         todo = np.isnan(xyz[:, 0])
         if np.any(todo):
             xyz[todo] = fmap.evaluate(params(st[todo], fid[todo]))
-        e = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], 1)  # (m, 3, 2)
-        es = np.sort(e, axis=2)
-        keys = es[..., 0] * big + es[..., 1]
-        pos = np.clip(np.searchsorted(bkeys, keys), 0, len(bkeys) - 1)
-        interior = bkeys[pos] != keys
         new = np.flatnonzero(np.isnan(err))
         if len(new):
             tn = tris[new]
+            e = np.stack([tn[:, [0, 1]], tn[:, [1, 2]], tn[:, [2, 0]]], 1)  # (m, 3, 2)
+            k = np.minimum(e[..., 0], e[..., 1]) * big + np.maximum(e[..., 0], e[..., 1])
+            keys[new] = k
+            interior[new] = bkeys[np.clip(np.searchsorted(bkeys, k), 0, len(bkeys) - 1)] != k
+            length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
+            # ties by parameter length, then by position in the triangle: deterministic
+            plen = np.linalg.norm(st[e[..., 0]] - st[e[..., 1]], axis=2)
+            longest[new] = np.argmax(np.where(interior[new], length + 1e-9 * plen, -1.0), axis=1)
             m = len(new)
             lam = rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
             w3 = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
@@ -698,11 +705,6 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
             raise GeometryError(
                 f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points per cell face "
                 f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
-        length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
-        # ties by parameter length, then by position in the triangle: deterministic
-        plen = np.linalg.norm(st[e[..., 0]] - st[e[..., 1]], axis=2)
-        score = np.where(interior, length + 1e-9 * plen, -1.0)
-        longest = np.argmax(score, axis=1)
         rows = np.arange(len(tris))
         split = np.unique(keys[rows[bad], longest[bad]])
         while True:
@@ -732,7 +734,11 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         out = [np.stack([v0, ml, v2], 1)[~h2], np.stack([v0, ml, m2], 1)[h2], np.stack([ml, v2, m2], 1)[h2],
                np.stack([ml, v1, v2], 1)[~h1], np.stack([ml, v1, m1], 1)[h1], np.stack([ml, m1, v2], 1)[h1]]
         tris = np.concatenate([tris[~touched]] + out)
-        err = np.concatenate([err[~touched], np.full(sum(len(o) for o in out), np.nan)])
+        made = sum(len(o) for o in out)
+        err = np.concatenate([err[~touched], np.full(made, np.nan)])
+        keys = np.concatenate([keys[~touched], np.zeros((made, 3), dtype=np.int64)])
+        interior = np.concatenate([interior[~touched], np.zeros((made, 3), dtype=bool)])
+        longest = np.concatenate([longest[~touched], np.zeros(made, dtype=np.int64)])
     else:
         raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * _ROUNDS} rounds")
     # back to the faces, in a fixed order
