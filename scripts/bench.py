@@ -41,6 +41,16 @@ def bench(spec, jobs):
     print(f"volume error     {report['checks']['volume_error']:8.2e}")
 
 
+def machine_probe():
+    """Seconds for a fixed pure-Python loop: this sandbox's speed drifts by up to ~40% between runs, so the build
+    figures are printed next to it."""
+    t = time.perf_counter()
+    s = 0
+    for i in range(5_000_000):
+        s += i
+    return time.perf_counter() - t
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--jobs", type=int, default=None)
@@ -50,6 +60,7 @@ def main():
     bunny = REPO / "specs" / "bunny-cage.yaml"
     if not args.specs and bunny.exists():
         specs.append(str(bunny))
+    print(f"machine probe    {machine_probe():8.3f} s (a fixed Python loop; larger means a slower machine right now)")
     for spec in specs:
         bench(spec, args.jobs)
 
