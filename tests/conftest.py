@@ -4,7 +4,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared"
+# copies of the project data (see tests/data/LICENSES.md): the tests run without ../shared beside the clone
+DATA = REPO / "tests" / "data" / "volumes"
 
 
 @pytest.fixture(autouse=True)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from conftest import SHARED
+from conftest import DATA
 from helpers_build import write_spec
 from volpuzzle.cli import cli
 
@@ -32,7 +32,7 @@ def spec_dict(tmp_path, **over):
 
 
 def test_info_json_on_gismo_file():
-    result = run("info", SHARED / "data/volumes/gismo_cylinder.xml", "--json")
+    result = run("info", DATA / "gismo_cylinder.xml", "--json")
     assert result.exit_code == 0, result.output
     data = json.loads(result.output)
     for key in ("degrees", "control_points", "domain", "periodic", "bbox", "volume", "handedness", "jacobian_min",
@@ -43,13 +43,15 @@ def test_info_json_on_gismo_file():
 
 
 def test_info_text():
-    result = run("info", SHARED / "data/volumes/gismo_twisted_pipe.xml")
+    result = run("info", DATA / "gismo_twisted_pipe.xml")
     assert result.exit_code == 0
     assert "volume" in result.output
 
 
 def test_info_bad_model_one_line():
-    assert_one_line_error(run("info", SHARED / "data/volumes/gismo_thbcube.xml"))
+    result = run("info", DATA / "gismo_thbcube.xml")
+    assert_one_line_error(result)
+    assert "Geometry type 'THBSpline3' is not supported" in result.output
 
 
 def test_info_missing_file():
@@ -117,8 +119,10 @@ def test_folding_model_refused_without_output(tmp_path):
 
 
 def test_bad_model_file_in_spec(tmp_path):
-    spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": str(SHARED / "data/volumes/gismo_thbcube.xml")}))
-    assert_one_line_error(run("build", spec))
+    spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": str(DATA / "gismo_thbcube.xml")}))
+    result = run("build", spec)
+    assert_one_line_error(result)
+    assert "Geometry type 'THBSpline3' is not supported" in result.output
     assert not (tmp_path / "out").exists()
 
 

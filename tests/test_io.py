@@ -11,11 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import DATA
 from volpuzzle.errors import ModelError, VolpuzzleError
 from volpuzzle.io import load_model, load_model_with_meta, read_patches, save_model
 from volpuzzle.spline.volume import Volume
 
-DATA = Path(__file__).parent / "data" / "volumes"
 REFERENCE = list(csv.DictReader(open(DATA / "REFERENCE_VALUES.tsv"), delimiter="\t"))
 
 

@@ -134,9 +134,8 @@ def test_model_collapsed_axis_passes_with_note():
     assert out["notes"] and "vanishes" in out["notes"][0]
 
 
-# --- real files (copied from the project data into tests/data/volumes by the io tests; see tests/data/LICENSES.md) --
-
-DATA = __import__("pathlib").Path(__file__).parent / "data" / "volumes"
+# --- real files (the copies of the project data in tests/data/volumes; see tests/data/LICENSES.md) ---------------
+from conftest import DATA  # noqa: E402
 
 
 @pytest.mark.parametrize("name,patch,handedness,degenerate", [
