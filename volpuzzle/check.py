@@ -92,7 +92,6 @@ def piece_solid(mesh: trimesh.Trimesh, pid: str):
     return _memo(mesh, "solid", make)
 
 
-
 def overlap_volume(a, b) -> float:
     """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
     import manifold3d

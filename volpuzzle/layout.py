@@ -117,16 +117,6 @@ def _resting(points, rot):
     return move @ rot, hi[:2] - lo[:2]
 
 
-def footprint_needed(meshes):
-    """Smallest plate (w, d) that can hold the largest piece in its print orientation."""
-    need = np.zeros(2)
-    for mesh in meshes:
-        rot, hull_points = _orient(mesh)
-        _, ext = _resting(hull_points, rot)
-        need = np.maximum(need, np.sort(ext)[::-1])
-    return need
-
-
 def layout(parts, plate, spacing, pin_directions=None):
     """Pack parts onto as few plates as fit. parts: list of (name, Trimesh) in assembled mm; plate (w, d) mm;
     pin_directions: {name: [(3,) unit vectors of its pins]}. -> (list of Placement, list of Plate)."""
