@@ -11,7 +11,7 @@ more). Points are processed in blocks under `prange`; scratch is per block.
 `cp` is (n_u, n_v, n_w (+pad), d): d = 3 for polynomial volumes, 4 (homogeneous) for rational ones; the
 caller divides by the last coordinate, and passes `mode`: an empty 1-d array for d = 3, 2-d for d = 4 (its
 ndim is a compile-time constant, so each case gets its own specialisation: ~25% faster than a run-time
-test). The serial kernel releases the GIL (nogil), so callers may run it from several threads.
+test). The serial entries release the GIL (nogil), so callers may run them from several threads.
 Parameters are clamped to the domain; NaN propagates (it fails every comparison, so the search
 stays in range).
 """
@@ -117,7 +117,7 @@ def _basis(br, invh, ext, p, t, N, dN, B, want_der):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, mode):
+def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
     # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
     rat = mode.ndim == 2  # a compile-time constant
     small = pv <= 3 and pw <= 3
@@ -373,7 +373,8 @@ def _cubic(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, cp, out, mode):
+def _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
+                        mode):
     # Tricubic volumes, the common case: every loop has constant length and every basis value is a scalar, so the
     # whole contraction stays in registers (~1.5x over _block_values).
     rat = mode.ndim == 2
@@ -430,7 +431,8 @@ def _cubic_der(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, cp, out, der, mode):
+def _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out,
+                             der, mode):
     # _block_derivatives for tricubic volumes, with the basis values and derivatives in registers.
     rat = mode.ndim == 2
     nch = 4 if rat else 3
@@ -475,32 +477,70 @@ def _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, b
             der[idx, ch, 2] = a_w
 
 
+# One serial and one parallel entry per kernel, chosen in Python by kernel_name: an entry that dispatched at run time
+# would make numba compile every kernel for every call signature (a cold first build took 3x longer).
+
+
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der,
-           mode):
-    cubic = pu == 3 and pv == 3 and pw == 3
-    if want_der and cubic:
-        _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, cp, out, der, mode)
-    elif want_der:
-        _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
-                           mode)
-    elif cubic:
-        _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, cp, out, mode)
-    else:
-        _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, mode)
+def values_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    _block_values(
+        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
 
 
 @njit(cache=True, fastmath=_FM, parallel=True)
-def eval_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der, mode):
+def values_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
     n = uvw.shape[0]
-    nblocks = (n + BLOCK - 1) // BLOCK
-    for b in prange(nblocks):
-        stop = min(n, (b + 1) * BLOCK)
-        _block(uvw, b * BLOCK, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der,
-               mode)
+    for b in prange((n + BLOCK - 1) // BLOCK):
+        _block_values(
+            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
+            out, der, mode)
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def eval_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der, mode):
-    _block(uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, want_der,
-           mode)
+def derivatives_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    _block_derivatives(
+        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
+
+
+@njit(cache=True, fastmath=_FM, parallel=True)
+def derivatives_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    n = uvw.shape[0]
+    for b in prange((n + BLOCK - 1) // BLOCK):
+        _block_derivatives(
+            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
+            out, der, mode)
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def values_cubic_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    _block_values_cubic(
+        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
+
+
+@njit(cache=True, fastmath=_FM, parallel=True)
+def values_cubic_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    n = uvw.shape[0]
+    for b in prange((n + BLOCK - 1) // BLOCK):
+        _block_values_cubic(
+            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
+            out, der, mode)
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def derivatives_cubic_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    _block_derivatives_cubic(
+        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
+
+
+@njit(cache=True, fastmath=_FM, parallel=True)
+def derivatives_cubic_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    n = uvw.shape[0]
+    for b in prange((n + BLOCK - 1) // BLOCK):
+        _block_derivatives_cubic(
+            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
+            out, der, mode)
+
+
+def kernel_name(degrees, want_der):
+    """Which entries (name + '_serial' / '_parallel') evaluate a volume of these degrees."""
+    return ("derivatives" if want_der else "values") + ("_cubic" if tuple(degrees) == (3, 3, 3) else "")

@@ -214,9 +214,9 @@ class Volume:
         uvw = np.ascontiguousarray(uvw, dtype=float)
         out = np.empty((n, d))
         der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
-        fn = fast.eval_parallel if parallel else fast.eval_serial
+        fn = getattr(fast, f"{fast.kernel_name(self.degrees, want_der)}_{kind}")
         tu, tv, tw = self._tables
-        fn(uvw, *tu, *tv, *tw, *self.degrees, self._knet, out, der, want_der, _MODE[d])
+        fn(uvw, *tu, *tv, *tw, *self.degrees, self._knet, out, der, _MODE[d])
         return out, (der if want_der else None)
 
     def _numpy_sums(self, uvw, want_der):
