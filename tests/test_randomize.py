@@ -8,7 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volpuzzle.errors import SpecError
-from volpuzzle.randomize import family_from_spec, greville, randomize, uniform_knots, warp_family
+from volpuzzle.randomize import family_from_spec, warp_family
+from volpuzzle.spec import RandomizeSpec
+from volpuzzle.spline.knots import greville, uniform_knots
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import Seam
 
@@ -106,11 +108,9 @@ def test_same_seed_same_net_bitwise_and_seeds_differ():
     assert a.tobytes() == b.tobytes()
     c = _family(seed=12)(0.25).control_points
     assert not np.array_equal(a, c)
-    spec = {"seed": 11, "amplitude": 0.25, "control_points": 6}
-    d = randomize(DOMAIN, spec, np.random.default_rng(11))
+    spec = RandomizeSpec(seed=11, amplitude=0.25, control_points=6)
+    d = family_from_spec(DOMAIN, spec, np.random.default_rng(11))(spec.amplitude)
     assert d.control_points.tobytes() == a.tobytes()
-    # no rng given: made from the seed, the same net
-    assert randomize(DOMAIN, spec, None).control_points.tobytes() == a.tobytes()
 
 
 def test_amplitude_scales_one_field():
@@ -121,12 +121,11 @@ def test_amplitude_scales_one_field():
 
 
 def test_randomize_none_and_zero():
-    assert randomize(DOMAIN, None, np.random.default_rng(0)) is None
-    assert randomize(DOMAIN, {"seed": 1, "amplitude": 0, "control_points": 6}, np.random.default_rng(0)) is None
-    spec = SimpleNamespace(seed=1, amplitude=0.2, control_points=5)
-    R = randomize(DOMAIN.T, spec, np.random.default_rng(1))  # ((u0, u1), ...) form accepted too
+    assert family_from_spec(DOMAIN, None, np.random.default_rng(0)) is None
+    assert family_from_spec(DOMAIN, RandomizeSpec(1, 0.0, 6), np.random.default_rng(0)) is None
+    spec = RandomizeSpec(seed=1, amplitude=0.2, control_points=5)
+    R = family_from_spec(DOMAIN.T, spec, np.random.default_rng(1))(spec.amplitude)  # ((u0, u1), ...) form too
     assert R.shape == (5, 5, 5) and np.array_equal(R.domain_array, DOMAIN)
-    assert family_from_spec(DOMAIN, spec, np.random.default_rng(1)).control_points == 5
 
 
 def test_too_few_control_points():
@@ -135,8 +134,8 @@ def test_too_few_control_points():
 
 
 def test_negative_amplitude_refused():
-    with pytest.raises(SpecError, match=r"randomize.amplitude"):
-        randomize(DOMAIN, {"seed": 1, "amplitude": -0.1, "control_points": 6}, np.random.default_rng(0))
+    with pytest.raises(SpecError, match=r"randomize.amplitude: must be a finite number >= 0 \(got -0.1"):
+        family_from_spec(DOMAIN, RandomizeSpec(1, -0.1, 6), np.random.default_rng(0))
 
 
 SYMMETRIES = [(s, (f0, f1)) for s in (False, True) for f0 in (False, True) for f1 in (False, True)]

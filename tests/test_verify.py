@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from volpuzzle.errors import GeometryError, ModelError
 
-from volpuzzle.randomize import uniform_knots, warp_family
+from volpuzzle.randomize import warp_family
+from volpuzzle.spline.knots import uniform_knots
 from volpuzzle.spline import Volume
 from volpuzzle.verify import safe_amplitude, verify_model, verify_warp
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from .errors import ModelError, SpecError
 from .spline import basis
+from .spline.knots import greville
 from .spline.volume import Volume
 
 SQRT_HALF = math.sqrt(0.5)
@@ -79,11 +80,6 @@ def _basis_matrix(knots, degree, t):
     for k in range(degree + 1):
         m[np.arange(len(t)), span - degree + k] = vals[:, k]
     return m
-
-
-def _greville(knots, degree):
-    n = len(knots) - degree - 1
-    return np.array([np.mean(knots[i + 1:i + degree + 1]) for i in range(n)])
 
 
 def _reverse_axis(vol, axis):
@@ -157,7 +153,7 @@ def _fit_closed_layers(curve, corner_map, size, tol=1e-4):
     exact = curve(check)
     for spans in (8, 12, 16, 24, 32, 48, 64, 96, 128):
         knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, spans + 1), [1, 1, 1]])
-        g = _greville(knots, 3)
+        g = greville(knots, 3)
         a = _basis_matrix(knots, 3, g)
         data = curve(g).reshape(len(g), -1)
         cps = np.linalg.solve(a, data)
@@ -360,8 +356,8 @@ def duck_shell(size=120.0, thickness=8.0):
     kw = np.array([0, 0, 1, 1.0])
     shell = Volume((3, 3, 1), (ku, kv, kw), np.stack([outer, outer], 2))
     # outward normals at the Greville points; the pole rows take the mean normal of a ring just off the pole
-    gu = np.clip(_greville(ku, 3), 1e-3, 1 - 1e-3)
-    gv = _greville(kv, 3)
+    gu = np.clip(greville(ku, 3), 1e-3, 1 - 1e-3)
+    gv = greville(kv, 3)
     uu, vv = np.meshgrid(gu, gv, indexing="ij")
     uvw = np.stack([uu.ravel(), vv.ravel(), np.zeros(uu.size)], 1)
     xyz, der = shell.evaluate_with_derivatives(uvw)

@@ -146,7 +146,7 @@ def prepare(spec, timer=None, progress=None):
     """Every stage up to joints, without meshes: what `validate` runs. -> dict of stage results."""
     from .joint import plan_joints
     from .mapping import Map
-    from .randomize import warp_family
+    from .randomize import family_from_spec
     from .spline.measure import volume as volume_of
     from .tile import tile
     from .verify import verify_model, verify_warp
@@ -164,8 +164,7 @@ def prepare(spec, timer=None, progress=None):
     warp, rand_report = None, {"seed": None, "amplitude": 0.0, "jacobian_min_coefficient": None, "bijective": True}
     if rand is not None and rand.amplitude > 0:
         with timer("randomize", progress):
-            rng = np.random.default_rng(rand.seed)
-            family = warp_family(vol.domain_array, rand.control_points, rng, seams)
+            family = family_from_spec(vol.domain_array, rand, np.random.default_rng(rand.seed), seams)
             warp = family(rand.amplitude)
         with timer("verify", progress):
             cert = verify_warp(family, rand.amplitude)

@@ -28,6 +28,7 @@ import numpy as np
 
 from .errors import SpecError
 from .spline import Volume
+from .spline.knots import greville, uniform_knots
 
 DEGREE = 3
 
@@ -40,19 +41,6 @@ def _domain_array(domain):
     if d.shape != (2, 3) or not np.all(np.isfinite(d)) or np.any(d[1] <= d[0]):
         raise ValueError(f"domain must be (2, 3) with min < max on every axis, got {np.asarray(domain).tolist()}")
     return d
-
-
-def uniform_knots(n, lo=0.0, hi=1.0, degree=DEGREE):
-    """Clamped uniform knot vector (n + degree + 1,) on [lo, hi]."""
-    inner = np.linspace(lo, hi, n - degree + 1)
-    return np.concatenate([np.full(degree, lo), inner, np.full(degree, hi)])
-
-
-def greville(knots, degree=DEGREE):
-    """Greville abscissae (n,): knot averages that reproduce the identity (NURBS Book, section 9.2.3)."""
-    k = np.asarray(knots, dtype=float)
-    n = len(k) - degree - 1
-    return np.array([k[i + 1:i + degree + 1].mean() for i in range(n)])
 
 
 def _boundary_mask(n):
@@ -157,36 +145,14 @@ def warp_family(domain, control_points, rng, seams=None):
     return WarpFamily(d, n, delta, knots, identity, tuple(sorted(int(a) for a in seams)))
 
 
-def _get(spec, key, default=None):
-    if spec is None:
-        return default
-    if isinstance(spec, dict):
-        return spec.get(key, default)
-    return getattr(spec, key, default)
-
-
-def family_from_spec(domain, rand_spec, rng=None, seams=None):
+def family_from_spec(domain, rand_spec, rng, seams=None):
     """WarpFamily for the spec's randomize section, or None when there is none or its amplitude is 0.
 
-    rand_spec: an object or dict with seed, amplitude, control_points. rng: the pipeline's generator; when None, one
-    is made from rand_spec.seed.
+    rand_spec: spec.RandomizeSpec or None. rng: the pipeline's generator, made from rand_spec.seed.
     """
-    if rand_spec is None:
+    if rand_spec is None or rand_spec.amplitude == 0:
         return None
-    amplitude = float(_get(rand_spec, "amplitude", 0.0) or 0.0)
-    if amplitude == 0:
-        return None
-    if amplitude < 0 or not np.isfinite(amplitude):
-        raise SpecError(f"randomize.amplitude: must be a finite number >= 0 (got {amplitude}, expected e.g. 0.25)")
-    n = int(_get(rand_spec, "control_points", 6) or 6)
-    if rng is None:
-        rng = np.random.default_rng(_get(rand_spec, "seed", 0))
-    return warp_family(domain, n, rng, seams)
-
-
-def randomize(domain, rand_spec, rng=None, seams=None):
-    """R: D -> D as a cubic Volume, or None when rand_spec is None or its amplitude is 0."""
-    family = family_from_spec(domain, rand_spec, rng, seams)
-    if family is None:
-        return None
-    return family(float(_get(rand_spec, "amplitude")))
+    if rand_spec.amplitude < 0 or not np.isfinite(rand_spec.amplitude):
+        raise SpecError(f"randomize.amplitude: must be a finite number >= 0 (got {rand_spec.amplitude}, "
+                        f"expected e.g. 0.25)")
+    return warp_family(domain, rand_spec.control_points, rng, seams)

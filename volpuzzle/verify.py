@@ -13,31 +13,20 @@ import math
 import numpy as np
 
 from .errors import GeometryError, ModelError
+from .spline import jacobian
 
 _DEFAULT_DEPTH = 6
 
 
-def _jacobian():
-    # Imported late: the exact-Jacobian module is the kernel's, and verify must still import without it.
-    from .spline import jacobian
-    return jacobian
-
-
 def _certify(vol, sign, max_depth, js=None):
-    """certify_positive / certify_negative, reusing an already computed JacobianSpline when the kernel takes one."""
-    jac = _jacobian()
-    fn = jac.certify_positive if sign > 0 else jac.certify_negative
-    if js is not None:
-        try:
-            return fn(vol, max_depth=max_depth, js=js)
-        except TypeError:
-            pass
-    return fn(vol, max_depth=max_depth)
+    """certify_positive / certify_negative, reusing an already computed JacobianSpline `js` when given."""
+    fn = jacobian.certify_positive if sign > 0 else jacobian.certify_negative
+    return fn(vol, max_depth=max_depth, js=js)
 
 
 def _absolute(cert):
     """The certificate's smallest coefficient in det J units (the kernel reports it relative to `scale`)."""
-    return float(cert.min_coefficient) * float(getattr(cert, "scale", 1.0) or 1.0)
+    return float(cert.min_coefficient) * float(cert.scale)
 
 
 def _fmt_uvw(uvw):
@@ -172,9 +161,9 @@ def verify_model(vol, max_depth=_DEFAULT_DEPTH):
     A left-handed model (det J < 0 everywhere) is valid. A degenerate axis (det J = 0 on a face, as at a sphere's
     pole or a cylinder's axis) is allowed with a note. A fold (det J changes sign) raises ModelError with the place.
     """
-    bez = _jacobian().jacobian_bezier(vol)
+    bez = jacobian.jacobian_bezier(vol)
     # For a rational M the coefficients bound W^4 det J; lower/upper are the kernel's bounds on det J itself.
-    lo, hi = float(getattr(bez, "lower", bez.min)), float(getattr(bez, "upper", bez.max))
+    lo, hi = float(bez.lower), float(bez.upper)
     if lo == hi == 0.0 and (bez.min != 0 or bez.max != 0):
         lo, hi = float(bez.min), float(bez.max)
     out = {"jacobian_min_coefficient": lo, "jacobian_max_coefficient": hi,
@@ -218,7 +207,7 @@ def verify_model(vol, max_depth=_DEFAULT_DEPTH):
                 f"(expected one sign on the whole domain)")
     if cert.status == "degenerate":
         out["degenerate"] = True
-        where = f" near uvw {_fmt_uvw(cert.where_uvw)}" if getattr(cert, "where_uvw", None) is not None else ""
+        where = f" near uvw {_fmt_uvw(cert.where_uvw)}" if cert.where_uvw is not None else ""
         out["notes"].append(
             f"det J vanishes on part of the boundary{where} (a collapsed edge or face, as at a pole); allowed, "
             f"the pieces there meet in a line or point")

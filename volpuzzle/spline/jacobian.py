@@ -53,23 +53,6 @@ def _levi_civita(n):
     return eps
 
 
-def _conv(a, b, spec, out_tail):
-    """Scaled Bernstein product summed by einsum `spec` over components.
-
-    a (K, s1, s2, s3, ...), b (K, t1, t2, t3, ...) -> (K, s1+t1-1, s2+t2-1, s3+t3-1, *out_tail): loop over
-    the index triples of a and add the shifted, component-combined copies of b.
-    """
-    K = a.shape[0]
-    s = a.shape[1:4]
-    t = b.shape[1:4]
-    out = np.zeros((K, s[0] + t[0] - 1, s[1] + t[1] - 1, s[2] + t[2] - 1) + tuple(out_tail))
-    for i in range(s[0]):
-        for j in range(s[1]):
-            for k in range(s[2]):
-                out[:, i:i + t[0], j:j + t[1], k:k + t[2]] += np.einsum(spec, a[:, i, j, k], b)
-    return out
-
-
 def _shifted_products(a, b):
     """Scaled Bernstein products of every component pair: a (m, s1, s2, s3, K), b (n, t1, t2, t3, K)
     -> (m, n, s1+t1-1, s2+t2-1, s3+t3-1, K). Elements run along the last (contiguous) axis."""

@@ -1,4 +1,5 @@
-"""Knot-vector operations on homogeneous control nets: insertion, Bezier extraction, sub-boxes.
+"""Knot vectors: uniform ones, Greville abscissae, and operations on homogeneous control nets (insertion, Bezier
+extraction, sub-boxes).
 
 All functions work along one `axis` of an array of homogeneous points (..., 4) so that a rational
 volume is refined exactly (The NURBS Book, section 5.2: insert in homogeneous space, project later).
@@ -9,6 +10,19 @@ import numpy as np
 from ..errors import ModelError
 
 AXES = "uvw"
+
+
+def uniform_knots(n, lo=0.0, hi=1.0, degree=3):
+    """Clamped uniform knot vector (n + degree + 1,) on [lo, hi] for n control points."""
+    inner = np.linspace(lo, hi, n - degree + 1)
+    return np.concatenate([np.full(degree, lo), inner, np.full(degree, hi)])
+
+
+def greville(knots, degree=3):
+    """Greville abscissae (n,): knot averages that reproduce the identity (NURBS Book, section 9.2.3)."""
+    k = np.asarray(knots, dtype=float)
+    n = len(k) - degree - 1
+    return np.array([k[i + 1:i + degree + 1].mean() for i in range(n)])
 
 
 def multiplicity(knots, t):

@@ -183,10 +183,6 @@ class Volume:
         fast = _fast_module()
         return tuple(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees))
 
-    @cached_property
-    def _last_spans(self):
-        return tuple(basis.last_span(k, p) for k, p in zip(self.knots, self.degrees))
-
     def _check_uvw(self, uvw):
         uvw = np.asarray(uvw, dtype=float)
         if uvw.ndim != 2 or uvw.shape[1] != 3:
