@@ -44,8 +44,12 @@ def test_info_json_on_gismo_file():
 
 def test_info_text():
     result = run("info", DATA / "gismo_twisted_pipe.xml")
-    assert result.exit_code == 0
-    assert "volume" in result.output
+    assert result.exit_code == 0, result.output
+    lines = dict(line.split(None, 1) for line in result.output.splitlines() if line.strip() and " " in line)
+    assert lines["degrees"].split() == ["u", "2", "v", "2", "w", "2"]
+    assert lines["handedness"].strip() == "right"
+    # 2.075661 in REFERENCE_VALUES.tsv, from an independent implementation
+    assert float(lines["volume"].split()[0]) == pytest.approx(2.075661, rel=1e-5)
 
 
 def test_info_bad_model_one_line():
