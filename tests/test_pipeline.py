@@ -59,13 +59,10 @@ def test_existing_output_needs_force(tmp_path):
 
 def test_amplitude_that_folds_names_safe_amplitude(tmp_path):
     spec = small_box_spec(tmp_path, randomize={"seed": 5, "amplitude": 4.0, "control_points": 5})
-    with pytest.raises(VolpuzzleErrorTypes) as e:
+    with pytest.raises(GeometryError, match=r"randomize.amplitude: 4 folds the map R .*at most [0-9.]+ certifies .*"
+                                            r"\(got 4, expected <= [0-9.]+\)"):
         volpuzzle.build(spec, jobs=1)
-    assert "amplitude" in str(e.value)
     assert not (tmp_path / "out").exists()
-
-
-VolpuzzleErrorTypes = (GeometryError, SpecError)
 
 
 def test_pin_that_does_not_fit(tmp_path):
@@ -77,7 +74,8 @@ def test_pin_that_does_not_fit(tmp_path):
 
 def test_unknown_builtin_is_a_spec_error(tmp_path):
     spec = small_box_spec(tmp_path, model={"builtin": {"type": "teapot"}})
-    with pytest.raises(SpecError):
+    with pytest.raises(SpecError, match=r"model.builtin.type: unknown builtin \(got 'teapot', expected one of "
+                                        r"quarter-torus, "):
         volpuzzle.build(spec, jobs=1)
 
 
