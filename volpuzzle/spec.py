@@ -22,6 +22,7 @@ from pathlib import Path
 import yaml
 
 from .errors import SpecError
+from .limits import LIMIT_HELP, Limits
 
 __all__ = [
     "AXES", "UNIT_SCALE", "MESH_SUFFIXES", "NURBS_SUFFIXES", "CAGE_TYPES",
@@ -44,7 +45,7 @@ DEFAULT_CAGE_PADDING = 1.0  # mm: keeps the mesh off the cage boundary, where Bo
 _NAME_RE = re.compile(r"[A-Za-z0-9_-]+")
 _NAME_MAX = 100
 
-_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output")
+_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "limits")
 _MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair")
 _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
@@ -125,6 +126,7 @@ class Spec:
     randomize: RandomizeSpec | None = None
     joints: JointSpec = field(default_factory=JointSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
+    limits: Limits = field(default_factory=Limits)
     source: Path | None = None
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -594,6 +596,23 @@ class _Checker:
                           labels=d.labels if labels is None else labels)
 
 
+    def limits(self, value):
+        """limits: {pieces: N, ...} raises the resource limits (limits.py) this spec means to pass."""
+        d = Limits()
+        m = self.mapping("limits", value, tuple(LIMIT_HELP))
+        if m is None:
+            return d
+        raised = {}
+        for key, item in m.items():
+            if isinstance(item, float) and math.isfinite(item) and item == int(item) and abs(item) < 1e15:
+                item = int(item)  # `triangles: 2e7` is a plain count
+            n = self.integer(f"limits.{key}", item, 1, what=f"an integer ({LIMIT_HELP[key]}; default "
+                                                          f"{getattr(d, key)})")
+            if n is not None:
+                raised[key] = n
+        return dataclasses.replace(d, **raised)
+
+
 _REQUIRED_HELP = {
     "name": "a name of letters, digits, '-' and '_'",
     "model": "a mapping with one of nurbs, builtin, mesh",
@@ -710,20 +729,23 @@ def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     randomize = c.randomize(top.get("randomize"))
     joints = c.joints(top.get("joints"))
     output = c.output(top.get("output"), name)
+    limits = c.limits(top.get("limits"))
     if c.problems:
         raise SpecError(c.problems, source=source)
     return Spec(name=name, model=model, grid=grid, splits=splits, periodic=periodic, randomize=randomize,
-                joints=joints, output=output, source=source, raw=data)
+                joints=joints, output=output, limits=limits, source=source, raw=data)
 
 
 # ----------------------------------------------------------------------------------------------------
 # Overrides and the report form
 
 
-def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None) -> Spec:
-    """The spec with the CLI's -o / --format / --seed applied. --seed only matters when randomize is on."""
+def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None, allow_large=False) -> Spec:
+    """The spec with the CLI's -o / --format / --seed / --allow-large applied. --seed only matters when randomize
+    is on."""
     c = _Checker(spec.source.parent if spec.source else Path.cwd())
     output, randomize = spec.output, spec.randomize
+    limits = dataclasses.replace(spec.limits, unlimited=True) if allow_large else spec.limits
     if output_dir is not None:
         directory = _resolve_dir(output_dir)
         if directory.exists() and not directory.is_dir():
@@ -739,7 +761,7 @@ def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None) -> Spec:
             randomize = dataclasses.replace(randomize, seed=value)
     if c.problems:
         raise SpecError(c.problems, source=spec.source)
-    return dataclasses.replace(spec, output=output, randomize=randomize)
+    return dataclasses.replace(spec, output=output, randomize=randomize, limits=limits)
 
 
 def spec_to_dict(spec: Spec) -> dict:
@@ -762,7 +784,7 @@ def spec_to_dict(spec: Spec) -> dict:
     model.update(units=m.units, size=m.size)
     r = spec.randomize
     j, o = spec.joints, spec.output
-    return {
+    out = {
         "name": spec.name,
         "model": model,
         "grid": list(spec.grid),
@@ -775,3 +797,7 @@ def spec_to_dict(spec: Spec) -> dict:
         "output": {"directory": None if o.directory is None else str(o.directory), "format": o.format,
                    "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels},
     }
+    raised = {k: getattr(spec.limits, k) for k in LIMIT_HELP if getattr(spec.limits, k) != getattr(Limits(), k)}
+    if raised:
+        out["limits"] = raised
+    return out

@@ -13,7 +13,9 @@ Other formats go through trimesh.load, with every exception turned into a ModelE
 """
 
 import os
+import stat
 import struct
+import zipfile
 
 import numpy as np
 import trimesh
@@ -23,7 +25,8 @@ from ..errors import ModelError
 EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 _TRIMESH_TYPES = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf", ".glb": "glb"}
 
-__all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_problems", "check_mesh", "repair_mesh"]
+__all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_from_bytes", "mesh_problems", "check_mesh",
+           "repair_mesh", "estimate_triangles", "regular_file_problem"]
 
 
 def _err(path, message):
@@ -122,14 +125,81 @@ def _read_stl_ascii(path, data):
 
 
 # --- reading ----------------------------------------------------------------------------------------------------------
+def regular_file_problem(path):
+    """None for a regular file (after symlinks), else what it is instead: 'no such file', 'a folder', 'a FIFO
+    (named pipe)' ... Reading a FIFO or a device would block or never end, so such paths are refused by name."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "no such file"
+    except (OSError, ValueError) as e:  # ValueError: a NUL byte in the path
+        return f"cannot be opened ({getattr(e, 'strerror', None) or e})"
+    if stat.S_ISREG(st.st_mode):
+        return None
+    if stat.S_ISDIR(st.st_mode):
+        return "is a folder, not a file"
+    kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
+            else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "not a file")
+    return f"is {kind}, not a regular file"
+
+
+def estimate_triangles(path):
+    """Triangles a mesh file holds, from its header or a quick count, without parsing it -> int, or None when the
+    file cannot tell (the reader then decides)."""
+    path = os.fspath(path)
+    if regular_file_problem(path):
+        return None
+    ext = os.path.splitext(path)[1].lower()
+    size = os.path.getsize(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            if ext == ".stl":
+                if size >= 84:
+                    count = int(struct.unpack("<I", head[80:84])[0])
+                    if 84 + 50 * count == size or not head.lstrip()[:5].lower() == b"solid":
+                        return min(count, (size - 84) // 50)  # a lying header is the reader's to report
+                return size // 250  # an ASCII facet takes about 250 bytes
+            if ext == ".ply":
+                for line in head.split(b"end_header")[0].splitlines():
+                    tok = line.split()
+                    if tok[:2] == [b"element", b"face"] and len(tok) == 3 and tok[2].isdigit():
+                        return int(tok[2])
+                return None
+            if ext == ".off":
+                rows = [r.split(b"#")[0].split() for r in head.splitlines()]
+                rows = [r for r in rows if r]
+                if len(rows) > 1 and len(rows[1]) >= 2 and rows[1][1].isdigit():
+                    return int(rows[1][1])
+                return None
+            if ext == ".obj":
+                f.seek(0)
+                count, last = 0, b"\n"
+                while True:
+                    chunk = f.read(1 << 22)
+                    if not chunk:
+                        return count
+                    count += (last + chunk).count(b"\nf ")
+                    last = chunk[-1:]
+        if ext == ".3mf":
+            with zipfile.ZipFile(path) as z:
+                return sum(i.file_size for i in z.infolist() if i.filename.endswith(".model")) // 100
+        if ext == ".glb":
+            return size // 36
+    except (OSError, ValueError, zipfile.BadZipFile, struct.error):
+        return None
+    return None
+
+
 def read_mesh(path):
     """Read a mesh file as it is (model units, no checks beyond readability) -> trimesh.Trimesh."""
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
-    if not os.path.exists(path):
+    problem = regular_file_problem(path)
+    if problem == "no such file":
         raise _err(path, "no such file (expected a mesh: " + ", ".join(EXTENSIONS) + ")")
-    if os.path.isdir(path):
-        raise _err(path, "is a directory, expected a mesh file")
+    if problem:
+        raise _err(path, f"{problem}, expected a mesh file")
     if ext not in EXTENSIONS:
         raise _err(path, f"unsupported mesh extension {ext or '(none)'!r} (expected one of " + ", ".join(EXTENSIONS)
                    + ")")
@@ -138,12 +208,39 @@ def read_mesh(path):
             data = f.read()
     except OSError as e:
         raise _err(path, f"cannot be read ({e.strerror})") from None
+    return mesh_from_bytes(path, data)
+
+
+def mesh_from_bytes(path, data):
+    """The bytes of a mesh file named path (its extension decides the format) -> trimesh.Trimesh; every failure
+    a ModelError naming path, every vertex finite."""
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in EXTENSIONS:
+        raise _err(path, f"unsupported mesh extension {ext or '(none)'!r} (expected one of " + ", ".join(EXTENSIONS)
+                   + ")")
+    try:
+        mesh = _mesh_from_bytes(path, ext, data)
+    except MemoryError:
+        raise _err(path, "too large to read into memory") from None
+    v = np.asarray(mesh.vertices, dtype=float)
+    if len(v) and not np.all(np.isfinite(v)):
+        # a NaN vertex would be merged away or silently repaired into a different solid
+        raise _err(path, f"{int(np.sum(~np.isfinite(v).all(axis=1)))} vertices have non-finite coordinates (NaN or "
+                         "infinity)")
+    return mesh
+
+
+def _mesh_from_bytes(path, ext, data):
     if not data.strip():
         raise _err(path, "the file is empty, expected a closed triangle mesh")
     if ext == ".stl":
         tris = _read_stl(path, data)
         if len(tris) == 0:
             raise _err(path, "the STL holds no triangles")
+        if not np.all(np.isfinite(tris)):
+            bad = int(np.argwhere(~np.isfinite(tris).all(axis=(1, 2)))[0, 0])
+            raise _err(path, f"triangle {bad} has a non-finite vertex coordinate (NaN or infinity)")
         # process=True merges equal vertices, which is what turns a triangle soup into a connected mesh
         return trimesh.Trimesh(**trimesh.triangles.to_kwargs(tris), process=True)
     if ext == ".3mf":
@@ -160,10 +257,6 @@ def read_mesh(path):
         loaded = loaded.dump(concatenate=True) if len(loaded.geometry) else trimesh.Trimesh()
     if not isinstance(loaded, trimesh.Trimesh):
         raise _err(path, f"holds no triangle mesh (got {type(loaded).__name__})")
-    v = np.asarray(loaded.vertices, dtype=float)
-    if len(v) and not np.all(np.isfinite(v)):
-        raise _err(path, f"{int(np.sum(~np.isfinite(v).all(axis=1)))} vertices have non-finite coordinates (NaN or "
-                         "infinity)")
     return loaded
 
 
