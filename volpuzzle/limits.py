@@ -22,8 +22,8 @@ __all__ = ["Limits", "LIMIT_HELP", "estimate_triangles", "check_spec_limits", "c
 # 720 MB, 20^3 took 137 MB; the certificate's Bernstein coefficients grow with the cube of the points per axis).
 _WARP_BYTES_PER_POINT = 15e3
 # Triangles per (mm^2 / (mm * mm)): a chord error t over a radius of curvature R allows edges of about sqrt(8 R t);
-# calibrated on the quarter torus and the twisted torus (the estimate is within a factor of 3 of the real count).
-_TRIANGLES_PER_AREA = 0.25
+# calibrated on the quarter torus (real count 1.8x the estimate) and the twisted torus (0.45x) at 0.3 to 0.01 mm.
+_TRIANGLES_PER_AREA = 0.75
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,7 @@ class Limits:
     """Upper bounds on the work of one build. unlimited (--allow-large) lifts them all."""
     pieces: int = 2048  # grid cells
     control_points: int = 32  # randomize.control_points, per axis
-    triangles: int = 4_000_000  # estimated triangles of all pieces together
+    triangles: int = 2_000_000  # estimated triangles of all pieces together
     mesh_triangles: int = 1_000_000  # triangles of a mesh model
     unlimited: bool = False
 
@@ -65,9 +65,7 @@ def check_spec_limits(spec) -> None:
     problems = []
     pieces = math.prod(int(g) for g in spec.grid)
     if _over(lim, "pieces", pieces):
-        # the same shape, scaled down to the limit
-        f = (lim.pieces / pieces) ** (1 / 3)
-        fit = [max(1, int(g * f)) for g in spec.grid]
+        fit = _fit_grid(spec.grid, lim.pieces)
         problems.append(f"grid: {' x '.join(str(g) for g in spec.grid)} = {pieces:.4g} pieces is more than the "
                         f"limit of {lim.pieces} (got {list(spec.grid)}, expected at most {lim.pieces} pieces, e.g. "
                         f"{fit}; {_RAISE.format(key='pieces')})")
@@ -88,6 +86,20 @@ def check_spec_limits(spec) -> None:
                             f"the mesh, e.g. decimate it in a mesh editor; {_RAISE.format(key='mesh_triangles')})")
     if problems:
         raise SpecError(problems, source=spec.source)
+
+
+def _fit_grid(grid, limit: int) -> list:
+    """The grid scaled down evenly along its split axes until it has at most `limit` cells."""
+    fit = [int(g) for g in grid]
+    for _ in range(3):
+        if math.prod(fit) <= limit:
+            break
+        free = [a for a in range(3) if fit[a] > 1]
+        f = (limit / math.prod(fit)) ** (1 / len(free))
+        fit = [max(1, int(fit[a] * f)) if a in free else 1 for a in range(3)]
+    while math.prod(fit) > limit:
+        fit[fit.index(max(fit))] -= 1
+    return fit
 
 
 def _breaks(domain, n, split):

@@ -144,6 +144,9 @@ def _check_grid_vs_tolerance(spec, tiling, fmap):
 
 def prepare(spec, timer=None, progress=None):
     """Every stage up to joints, without meshes: what `validate` runs. -> dict of stage results."""
+    from .limits import check_model_limits, check_spec_limits
+
+    check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
     from .joint import plan_joints
     from .mapping import Map
     from .randomize import warp_family
@@ -151,10 +154,7 @@ def prepare(spec, timer=None, progress=None):
     from .tile import tile
     from .verify import verify_model, verify_warp
 
-    from .limits import check_model_limits, check_spec_limits
-
     timer = timer or Timer()
-    check_spec_limits(spec)  # refuse work that cannot fit before any of it is done
     with timer("load", progress):
         model = load_model_for(spec)
         check_model_limits(spec, model.volume)

@@ -16,6 +16,7 @@ import difflib
 import math
 import re
 import reprlib
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,6 +44,8 @@ SPLIT_MODES = ("uniform", "knots")
 
 DEFAULT_CAGE_PADDING = 1.0  # mm: keeps the mesh off the cage boundary, where Booleans would be coplanar
 _NAME_RE = re.compile(r"[A-Za-z0-9_-]+")
+_YAML11_FLOAT = re.compile(r"[-+]?[0-9]+(\.[0-9]*)?[eE][-+]?[0-9]+")
+_MAX_CLEARANCE = 2.0  # mm: print clearances are tenths of a millimetre; more leaves the pin loose in its hole
 _NAME_MAX = 100
 
 _TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "limits")
@@ -248,7 +251,7 @@ class _Checker:
             return None
         return value
 
-    def number(self, path, value, *, above=None, at_least=None, allow_none=False):
+    def number(self, path, value, *, above=None, at_least=None, allow_none=False, at_most=None, why=""):
         if at_least is not None:
             expected = f"a number >= {_num(at_least)}"
         elif above is not None:
@@ -259,6 +262,9 @@ class _Checker:
             expected += ", or nothing for the default"
         if value is None and allow_none:
             return None
+        if isinstance(value, str) and _YAML11_FLOAT.fullmatch(value.strip()):
+            # YAML 1.1 reads 1e-6 (no decimal point) as a text; it is a number in every other reading
+            value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.bad(path, "not a number", _show(value), expected)
             return None
@@ -267,6 +273,9 @@ class _Checker:
             return None
         if (at_least is not None and value < at_least) or (above is not None and value <= above):
             self.bad(path, "out of range", _show(value), expected)
+            return None
+        if at_most is not None and value > at_most:
+            self.bad(path, "too large", _show(value), f"{expected} and <= {_num(at_most)}{why}")
             return None
         return float(value)
 
@@ -300,13 +309,21 @@ class _Checker:
                      f"{what} ending in {_one_of(suffixes)[8:]}")
             return None
         try:
-            exists, is_dir = resolved.is_file(), resolved.is_dir()
-        except OSError:
-            exists, is_dir = False, False
-        if is_dir:
+            st = resolved.stat()
+        except FileNotFoundError:
+            st = None
+        except (OSError, ValueError) as exc:
+            self.bad(path, f"cannot be opened ({getattr(exc, 'strerror', None) or exc})", _show(value),
+                     f"the path of {what}")
+            return None
+        if st is not None and stat.S_ISDIR(st.st_mode):
             self.bad(path, "is a folder, not a file", repr(str(resolved)), f"{what} file")
             return None
-        if not exists:
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a device or socket"
+            self.bad(path, f"is {kind}, not a regular file", repr(str(resolved)), f"{what} as a regular file")
+            return None
+        if st is None:
             self.bad(path, "file not found", repr(str(resolved)),
                      f"an existing file; relative paths are read from the spec's folder {self.base}")
             return None
@@ -549,8 +566,11 @@ class _Checker:
         space = self.enum("joints.space", j.get("space", d.space), JOINT_SPACES)
         radius = self.number("joints.radius", j.get("radius"), above=0, allow_none=True)
         length = self.number("joints.length", j.get("length"), above=0, allow_none=True)
-        clearance = self.number("joints.clearance", j.get("clearance", d.clearance), at_least=0)
-        axial = self.number("joints.axial_clearance", j.get("axial_clearance", d.axial_clearance), at_least=0)
+        why = "; a print clearance is a few tenths of a millimetre, 0.1 to 0.4 mm for most printers"
+        clearance = self.number("joints.clearance", j.get("clearance", d.clearance), at_least=0,
+                                at_most=_MAX_CLEARANCE, why=why)
+        axial = self.number("joints.axial_clearance", j.get("axial_clearance", d.axial_clearance), at_least=0,
+                            at_most=_MAX_CLEARANCE, why=why)
         if clearance is not None and radius is not None and clearance >= radius:
             self.bad("joints.clearance", "not smaller than the pin radius", _show(j.get("clearance", d.clearance)),
                      f">= 0 and < joints.radius = {_num(radius)}; or a radius > {_num(clearance)}")
@@ -570,10 +590,15 @@ class _Checker:
                 self.bad("output.directory", "not a folder path", _show(raw),
                          "a folder path, relative to the current directory")
             else:
-                directory = _resolve_dir(raw)
-                if directory.exists() and not directory.is_dir():
-                    self.bad("output.directory", "is a file, not a folder", repr(str(directory)),
-                             "a folder path (it is created, or replaced with --force)")
+                try:
+                    directory = _resolve_dir(raw)
+                    if directory.exists() and not directory.is_dir():
+                        self.bad("output.directory", "is a file, not a folder", repr(str(directory)),
+                                 "a folder path (it is created, or replaced with --force)")
+                except (OSError, ValueError) as exc:
+                    self.bad("output.directory", f"not a usable folder path ({getattr(exc, 'strerror', None) or exc})",
+                             _show(raw), "a folder path, relative to the current directory")
+                    directory = None
         if directory is None and name is not None:
             directory = _resolve_dir(Path("out") / name)
         fmt = self.enum("output.format", o.get("format", d.format), FORMATS)
@@ -695,6 +720,9 @@ def load_spec(path) -> Spec:
     """Read and check a spec file -> Spec, or raise one SpecError listing every mistake."""
     path = Path(path).expanduser()
     try:
+        if path.exists() and not path.is_dir() and not path.is_file():  # reading a FIFO would wait forever
+            raise SpecError([f"spec: not a regular file (got {str(path)!r}, a FIFO, device or socket, expected a "
+                             "YAML file)"], source=path)
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SpecError([f"spec: file not found (got {str(path.resolve())!r}, expected an existing YAML file)"],
@@ -708,6 +736,8 @@ def load_spec(path) -> Spec:
     except OSError as exc:
         raise SpecError([f"spec: cannot read the file (got {exc.strerror or exc}, expected a readable YAML "
                          "file)"], source=path) from None
+    except ValueError as exc:  # a NUL byte in the path
+        raise SpecError([f"spec: not a usable path (got {str(path)!r}: {exc}, expected a file path)"]) from None
     return load_spec_text(text, source=path)
 
 

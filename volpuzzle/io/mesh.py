@@ -13,7 +13,6 @@ Other formats go through trimesh.load, with every exception turned into a ModelE
 """
 
 import os
-import stat
 import struct
 import zipfile
 
@@ -21,6 +20,7 @@ import numpy as np
 import trimesh
 
 from ..errors import ModelError
+from . import regular_file_problem
 
 EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 _TRIMESH_TYPES = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf", ".glb": "glb"}
@@ -125,24 +125,6 @@ def _read_stl_ascii(path, data):
 
 
 # --- reading ----------------------------------------------------------------------------------------------------------
-def regular_file_problem(path):
-    """None for a regular file (after symlinks), else what it is instead: 'no such file', 'a folder', 'a FIFO
-    (named pipe)' ... Reading a FIFO or a device would block or never end, so such paths are refused by name."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return "no such file"
-    except (OSError, ValueError) as e:  # ValueError: a NUL byte in the path
-        return f"cannot be opened ({getattr(e, 'strerror', None) or e})"
-    if stat.S_ISREG(st.st_mode):
-        return None
-    if stat.S_ISDIR(st.st_mode):
-        return "is a folder, not a file"
-    kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
-            else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "not a file")
-    return f"is {kind}, not a regular file"
-
-
 def estimate_triangles(path):
     """Triangles a mesh file holds, from its header or a quick count, without parsing it -> int, or None when the
     file cannot tell (the reader then decides)."""
