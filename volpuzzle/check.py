@@ -484,7 +484,8 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
         raise VolpuzzleError(f"{directory}: not a volpuzzle output folder (no report.json)")
     _, raw = _inside_file(directory, "report.json", str(report_path), _REPORT_MAX_BYTES)
     try:
-        report = json.loads(raw.decode("utf-8"), parse_constant=_no_constant, parse_int=_small_int)
+        report = json.loads(raw.decode("utf-8"), parse_constant=_no_constant, parse_int=_small_int,
+                            parse_float=_finite_float)
     except RecursionError:
         raise VolpuzzleError(f"{report_path}: unreadable report: nested too deeply") from None
     except (ValueError, UnicodeDecodeError) as e:
@@ -519,6 +520,13 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
 
 def _no_constant(name):
     raise ValueError(f"{name} is not JSON")
+
+
+def _finite_float(text):
+    x = float(text)
+    if not math.isfinite(x):
+        raise ValueError(f"the number {text[:12]}... ({len(text)} characters) overflows double precision")
+    return x
 
 
 def _small_int(text):
