@@ -9,14 +9,18 @@ refuse such a spec at once, saying the limit and what would fit. A user who mean
 from __future__ import annotations
 
 import math
+import os
+import struct
+import zipfile
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import SpecError
+from .io import regular_file_problem
 
 __all__ = ["Limits", "LIMIT_HELP", "estimate_triangles", "check_spec_limits", "check_model_limits",
-           "warp_memory_bytes"]
+           "warp_memory_bytes", "mesh_file_triangles"]
 
 # What one control point of the random map costs while its Jacobian is certified (measured: 36^3 points took
 # 720 MB, 20^3 took 137 MB; the certificate's Bernstein coefficients grow with the cube of the points per axis).
@@ -77,9 +81,7 @@ def check_spec_limits(spec) -> None:
                         f"(got {r.control_points}, expected 4 to {lim.control_points}; "
                         f"{_RAISE.format(key='control_points')})")
     if spec.model.mesh is not None:
-        from .io.mesh import estimate_triangles as mesh_triangles
-
-        n = mesh_triangles(spec.model.mesh)
+        n = mesh_file_triangles(spec.model.mesh)
         if n is not None and _over(lim, "mesh_triangles", n):
             problems.append(f"model.mesh: {spec.model.mesh.name} has about {n:,} triangles, more than the limit of "
                             f"{lim.mesh_triangles:,} (got {n:,}, expected at most {lim.mesh_triangles:,}: simplify "
@@ -164,3 +166,51 @@ def check_model_limits(spec, vol) -> None:
         raise SpecError([f"output.tolerance: {tol:g} mm would make about {n:.3g} triangles, more than the limit of "
                          f"{lim.triangles:,} (got {tol:g}, expected at least {fit:.2g} mm for this model and grid; "
                          f"{_RAISE.format(key='triangles')})"], source=spec.source)
+
+
+def mesh_file_triangles(path):
+    """Triangles a mesh file holds, from its header or a quick count, without parsing it (nor importing trimesh)
+    -> int, or None when the file cannot tell (the reader then decides)."""
+    path = os.fspath(path)
+    if regular_file_problem(path):
+        return None
+    ext = os.path.splitext(path)[1].lower()
+    size = os.path.getsize(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            if ext == ".stl":
+                if size >= 84:
+                    count = int(struct.unpack("<I", head[80:84])[0])
+                    if 84 + 50 * count == size or not head.lstrip()[:5].lower() == b"solid":
+                        return min(count, (size - 84) // 50)  # a lying header is the reader's to report
+                return size // 250  # an ASCII facet takes about 250 bytes
+            if ext == ".ply":
+                for line in head.split(b"end_header")[0].splitlines():
+                    tok = line.split()
+                    if tok[:2] == [b"element", b"face"] and len(tok) == 3 and tok[2].isdigit():
+                        return int(tok[2])
+                return None
+            if ext == ".off":
+                rows = [r.split(b"#")[0].split() for r in head.splitlines()]
+                rows = [r for r in rows if r]
+                if len(rows) > 1 and len(rows[1]) >= 2 and rows[1][1].isdigit():
+                    return int(rows[1][1])
+                return None
+            if ext == ".obj":
+                f.seek(0)
+                count, last = 0, b"\n"
+                while True:
+                    chunk = f.read(1 << 22)
+                    if not chunk:
+                        return count
+                    count += (last + chunk).count(b"\nf ")
+                    last = chunk[-1:]
+        if ext == ".3mf":
+            with zipfile.ZipFile(path) as z:
+                return sum(i.file_size for i in z.infolist() if i.filename.endswith(".model")) // 100
+        if ext == ".glb":
+            return size // 36
+    except (OSError, ValueError, zipfile.BadZipFile, struct.error):
+        return None
+    return None

@@ -14,7 +14,6 @@ Other formats go through trimesh.load, with every exception turned into a ModelE
 
 import os
 import struct
-import zipfile
 
 import numpy as np
 import trimesh
@@ -26,7 +25,7 @@ EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 _TRIMESH_TYPES = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf", ".glb": "glb"}
 
 __all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_from_bytes", "mesh_problems", "check_mesh",
-           "repair_mesh", "estimate_triangles", "regular_file_problem"]
+           "repair_mesh"]
 
 
 def _err(path, message):
@@ -125,54 +124,6 @@ def _read_stl_ascii(path, data):
 
 
 # --- reading ----------------------------------------------------------------------------------------------------------
-def estimate_triangles(path):
-    """Triangles a mesh file holds, from its header or a quick count, without parsing it -> int, or None when the
-    file cannot tell (the reader then decides)."""
-    path = os.fspath(path)
-    if regular_file_problem(path):
-        return None
-    ext = os.path.splitext(path)[1].lower()
-    size = os.path.getsize(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-            if ext == ".stl":
-                if size >= 84:
-                    count = int(struct.unpack("<I", head[80:84])[0])
-                    if 84 + 50 * count == size or not head.lstrip()[:5].lower() == b"solid":
-                        return min(count, (size - 84) // 50)  # a lying header is the reader's to report
-                return size // 250  # an ASCII facet takes about 250 bytes
-            if ext == ".ply":
-                for line in head.split(b"end_header")[0].splitlines():
-                    tok = line.split()
-                    if tok[:2] == [b"element", b"face"] and len(tok) == 3 and tok[2].isdigit():
-                        return int(tok[2])
-                return None
-            if ext == ".off":
-                rows = [r.split(b"#")[0].split() for r in head.splitlines()]
-                rows = [r for r in rows if r]
-                if len(rows) > 1 and len(rows[1]) >= 2 and rows[1][1].isdigit():
-                    return int(rows[1][1])
-                return None
-            if ext == ".obj":
-                f.seek(0)
-                count, last = 0, b"\n"
-                while True:
-                    chunk = f.read(1 << 22)
-                    if not chunk:
-                        return count
-                    count += (last + chunk).count(b"\nf ")
-                    last = chunk[-1:]
-        if ext == ".3mf":
-            with zipfile.ZipFile(path) as z:
-                return sum(i.file_size for i in z.infolist() if i.filename.endswith(".model")) // 100
-        if ext == ".glb":
-            return size // 36
-    except (OSError, ValueError, zipfile.BadZipFile, struct.error):
-        return None
-    return None
-
-
 def read_mesh(path):
     """Read a mesh file as it is (model units, no checks beyond readability) -> trimesh.Trimesh."""
     path = os.fspath(path)
