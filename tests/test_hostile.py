@@ -401,9 +401,14 @@ def test_stale_temporary_folders_of_ours_are_removed(tmp_path):
     stale = tmp(".out.tmp-abc123", dead.pid)
     running = tmp(".out.tmp-def456", os.getpid())
     foreign = tmp(".out.tmp-ghi789", None, marker=False)
+    (foreign / "thesis.tex").write_text("precious")
+    legacy = tmp(".out.tmp-jkl01234", None, marker=False)  # a killed build's, from before the marker
+    (legacy / "pieces").mkdir()
+    (legacy / "puzzle.3mf").write_bytes(b"x")
+    os.utime(legacy, (time.time() - 7200, time.time() - 7200))
     pieces = _pieces()
     write_build(tmp_path / "out", pieces, _report(pieces))
-    assert not stale.exists() and running.exists() and foreign.exists()
+    assert not stale.exists() and running.exists() and foreign.exists() and not legacy.exists()
     assert remove_stale_temporaries(tmp_path / "out") == []
 
 
@@ -489,6 +494,13 @@ def test_paths_with_a_nul_byte_or_too_long(tmp_path, path):
     with pytest.raises(SpecError) as e:
         load_spec_text(text, source=tmp_path / "s.yaml")
     assert "model.nurbs" in str(e.value)
+
+
+def test_an_output_path_over_the_os_limit_is_one_line(tmp_path):
+    long = str(tmp_path / ("x" * 5000))
+    refused(["build", str(_spec(tmp_path)), "-o", long], "output.directory", "File name too long")
+    refused(["info", long + ".itd"], "File name too long")
+    refused(["check", long], "File name too long")
 
 
 def test_clearance_of_50_gets_a_sensible_bound(tmp_path):

@@ -326,7 +326,9 @@ def remove_stale_temporaries(target: Path) -> list:
             continue
         marker = _read_marker(p)
         if marker is None:
-            continue
+            if not _legacy_temporary(p):
+                continue
+            marker = {"pid": None, "host": None}
         if p.name.startswith(f".{target.name}.tmp-") and (marker.get("host") not in (host, None)
                                                            or _alive(marker.get("pid"))):
             continue  # a running build's, or another machine's: leave it
@@ -335,6 +337,22 @@ def remove_stale_temporaries(target: Path) -> list:
         shutil.rmtree(p, ignore_errors=True)
         removed.append(p.name)
     return removed
+
+
+_OUTPUT_NAMES = {"pieces", "dowels", "plates", "puzzle.3mf", "preview.png", "report.json", "report.md"}
+
+
+def _legacy_temporary(folder: Path, age_s: float = 3600.0) -> bool:
+    """A temporary folder of a volpuzzle from before the marker: mkdtemp's 8-character suffix, nothing in it but
+    what the export stage writes, and untouched for an hour (no build takes that long to export)."""
+    suffix = folder.name.rsplit(".tmp-", 1)[-1]
+    if ".tmp-" not in folder.name or len(suffix) != 8:
+        return False
+    try:
+        names = {p.name for p in folder.iterdir()}
+        return names <= _OUTPUT_NAMES and time.time() - folder.stat().st_mtime > age_s
+    except OSError:
+        return False
 
 
 def _failure(target: Path, e: BaseException, tmp: Path | None = None) -> str:

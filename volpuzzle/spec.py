@@ -777,10 +777,14 @@ def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None, allow_large
     output, randomize = spec.output, spec.randomize
     limits = dataclasses.replace(spec.limits, unlimited=True) if allow_large else spec.limits
     if output_dir is not None:
-        directory = _resolve_dir(output_dir)
-        if directory.exists() and not directory.is_dir():
-            c.bad("output.directory", "is a file, not a folder", repr(str(directory)), "a folder path (-o)")
-        output = dataclasses.replace(output, directory=directory)
+        try:
+            directory = _resolve_dir(output_dir)
+            if directory.exists() and not directory.is_dir():
+                c.bad("output.directory", "is a file, not a folder", repr(str(directory)), "a folder path (-o)")
+            output = dataclasses.replace(output, directory=directory)
+        except (OSError, ValueError) as exc:
+            c.bad("output.directory", f"not a usable folder path ({getattr(exc, 'strerror', None) or exc})",
+                  _show(str(output_dir)), "a folder path (-o)")
     if fmt is not None:
         value = c.enum("output.format", fmt, FORMATS)
         if value:
