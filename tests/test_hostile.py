@@ -348,6 +348,18 @@ def test_force_refuses_someone_elses_report_json(tmp_path):
     assert (theirs / "notes.txt").read_text() == "precious"
 
 
+def test_force_replaces_an_output_from_before_the_marker_only_when_it_holds_nothing_else(folder):
+    (folder / MARKER).unlink()
+    _edit_report(folder, lambda r: r.update(volpuzzle_version="0.1.0"))
+    pieces = _pieces()
+    write_build(folder, pieces, _report(pieces), force=True)  # only our files: replaced
+    (folder / MARKER).unlink()
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(ExportError, match="not a volpuzzle output folder"):
+        write_build(folder, pieces, _report(pieces), force=True)
+    assert (folder / "notes.txt").read_text() == "mine"
+
+
 def test_force_never_replaces_the_folder_of_the_spec_and_model(tmp_path):
     shutil.copy(DATA / "irit_bent_pipe.itd", tmp_path / "model.itd")
     (tmp_path / "report.json").write_text("{}")  # a stale report, and even our marker: still refused

@@ -288,7 +288,7 @@ def check_target(target, force: bool = False, protect=()) -> Path:
             empty = not any(target.iterdir())
         except OSError as e:
             raise ExportError(f"{target}: cannot list the folder ({e.strerror})") from None
-        if not empty and _read_marker(target) is None:
+        if not empty and _read_marker(target) is None and not _legacy_output(target):
             raise ExportError(f"{target} is not a volpuzzle output folder (no {MARKER} marker that volpuzzle "
                               f"writes) and not empty; refusing to replace it, even with --force (remove it "
                               f"yourself or choose another -o)")
@@ -353,6 +353,22 @@ def _legacy_temporary(folder: Path, age_s: float = 3600.0) -> bool:
         return names <= _OUTPUT_NAMES and time.time() - folder.stat().st_mtime > age_s
     except OSError:
         return False
+
+
+def _legacy_output(folder: Path) -> bool:
+    """An output folder of a volpuzzle from before the marker: nothing in it but what the export stage writes, and
+    a report.json that volpuzzle wrote (it names its version). A folder with any other file is not one."""
+    try:
+        names = {p.name for p in folder.iterdir()}
+        report = folder / "report.json"
+        if not names <= _OUTPUT_NAMES or report.is_symlink() or not report.is_file():
+            return False
+        if report.stat().st_size > (64 << 20):
+            return False
+        data = json.loads(report.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("volpuzzle_version"), str) and "pieces" in data
 
 
 def _failure(target: Path, e: BaseException, tmp: Path | None = None) -> str:
