@@ -540,5 +540,5 @@ def validate(spec_path, allow_large=False):
     spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     stages = prepare(spec)
     _check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
-    return {"name": spec.name, "pieces": int(np.prod(spec.grid)), "joints": len(stages["joints"]),
+    return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(stages["joints"]),
             "model": stages["model_report"], "randomize": stages["randomize_report"]}

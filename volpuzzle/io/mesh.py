@@ -146,7 +146,8 @@ def read_mesh(path):
 
 def mesh_from_bytes(path, data):
     """The bytes of a mesh file named path (its extension decides the format) -> trimesh.Trimesh; every failure
-    a ModelError naming path, every vertex finite."""
+    a ModelError naming path, every vertex finite. A 3MF is read by lib3mf from path itself (it reads files by
+    name), so for 3MF the bytes must be that file's."""
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
     if ext not in EXTENSIONS:
