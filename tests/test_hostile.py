@@ -523,3 +523,18 @@ def test_clearance_of_50_gets_a_sensible_bound(tmp_path):
 def test_grid_entry_of_1e26_is_one_line(tmp_path):
     refused(["validate", str(_spec(tmp_path, grid=[10 ** 26, 1, 1]))], "grid")
     refused(["validate", str(_spec(tmp_path, grid=[1e26, 1, 1]))], "grid[0]")
+
+
+@pytest.mark.parametrize("command", ["build", "validate"])
+def test_allow_large_reaches_the_pipeline(tmp_path, monkeypatch, command):
+    import volpuzzle.pipeline as pipeline
+
+    seen = {}
+
+    def fake(spec_path, **kwargs):
+        seen.update(kwargs)
+        raise SpecError("stop here")
+
+    monkeypatch.setattr(pipeline, command, fake)
+    refused([command, str(_spec(tmp_path)), "--allow-large"], "stop here")
+    assert seen["allow_large"] is True
