@@ -7,6 +7,7 @@ same checks on a built output folder from its files alone (`volpuzzle check DIR`
 from __future__ import annotations
 
 import json
+import math
 import time
 import weakref
 from pathlib import Path
@@ -227,22 +228,179 @@ def assert_passed(checks: dict, what: str = "the build") -> dict:
     return checks
 
 
-def _load_mesh(path: Path) -> trimesh.Trimesh:
+_REPORT_MAX_BYTES = 64 << 20  # report.json of a 10k-piece puzzle is ~20 MB
+_PIECE_MAX_BYTES = 1 << 30
+
+
+def _inside_file(directory: Path, rel, field: str, max_bytes: int) -> Tuple[Path, bytes]:
+    """(path, bytes) of the regular file `rel` inside directory, read without following any symlink; raises
+    VolpuzzleError naming `field` for anything else: an absolute path, '..', a symlink anywhere on the way, a
+    FIFO or device, a file too large. A checker run on a folder someone sent must read that folder only."""
+    import errno
+    import os
+    import stat
+
+    if not isinstance(rel, str) or not rel or "\x00" in rel:
+        raise VolpuzzleError(f"{field}: not a file name inside the folder (got {rel!r}, expected a relative path "
+                             f"such as pieces/p0-0-0.stl)")
+    parts = rel.replace("\\", "/").split("/")
+    if rel.startswith(("/", "\\")) or (len(parts[0]) >= 2 and parts[0][1] == ":") or ".." in parts:
+        raise VolpuzzleError(f"{field}: points outside the folder (got {rel!r}, expected a relative path inside "
+                             f"{directory}, without '..')")
+    parts = [p for p in parts if p not in ("", ".")]
+    if not parts:
+        raise VolpuzzleError(f"{field}: not a file name inside the folder (got {rel!r}, expected a relative path)")
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    dflags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    path = directory.joinpath(*parts)
+    fds = []
+    try:
+        try:
+            fds.append(os.open(directory, dflags & ~getattr(os, "O_NOFOLLOW", 0)))
+            for part in parts[:-1]:  # every folder on the way opened relative to the last, never followed
+                fds.append(os.open(part, dflags, dir_fd=fds[-1]))
+            fd = os.open(parts[-1], flags, dir_fd=fds[-1])
+        except FileNotFoundError:
+            raise
+        except OSError as e:
+            if e.errno in (errno.ELOOP, errno.ENOTDIR):
+                link = next((p for p in (directory.joinpath(*parts[:i + 1]) for i in range(len(parts)))
+                             if p.is_symlink()), None)
+                what = (f"{link.relative_to(directory)} is a symbolic link" if link is not None
+                        else f"{rel} passes through something that is not a folder")
+                raise VolpuzzleError(f"{field}: {what} (got {rel!r}, expected regular files and folders inside "
+                                     f"{directory}, no links)") from None
+            raise VolpuzzleError(f"{field}: cannot open {rel} ({e.strerror or e})") from None
+        fds.append(fd)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise VolpuzzleError(f"{field}: {rel} is not a regular file (got mode {stat.filemode(st.st_mode)}, "
+                                 f"expected a regular file)")
+        if st.st_size > max_bytes:
+            raise VolpuzzleError(f"{field}: {rel} is too large (got {st.st_size:,} bytes, expected at most "
+                                 f"{max_bytes:,})")
+        with os.fdopen(os.dup(fd), "rb") as f:
+            data = f.read(max_bytes + 1)
+    finally:
+        for fd in fds:
+            os.close(fd)
+    return path, data
+
+
+def _load_mesh(path: Path, data: bytes) -> trimesh.Trimesh:
+    """A piece file's bytes -> trimesh; every failure a ModelError naming the file."""
     if path.suffix.lower() == ".3mf":
+        import tempfile
+
         from .io.threemf import read_3mf
 
-        objs = read_3mf(path)
+        # lib3mf reads files by name: hand it a private copy of the bytes already read, never the path itself
+        with tempfile.NamedTemporaryFile(suffix=".3mf") as tmp:
+            tmp.write(data)
+            tmp.flush()
+            objs = read_3mf(tmp.name)
         if len(objs) != 1:
             raise ModelError(f"{path}: expected one piece, found {len(objs)} objects")
         _, v, f, _ = objs[0]
         return trimesh.Trimesh(v, f, process=True, validate=False)
+    from .io.mesh import mesh_from_bytes
+
     try:
-        mesh = trimesh.load_mesh(path, process=True)
-    except Exception as e:
-        raise ModelError(f"{path}: unreadable piece file: {e}") from e
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise ModelError(f"{path}: expected one mesh, got {type(mesh).__name__}")
-    return mesh
+        return mesh_from_bytes(path, data)
+    except VolpuzzleError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a hostile file must give a message, never a crash
+        raise ModelError(f"{path}: unreadable piece file: {type(e).__name__}: {e}") from None
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _vec3(x) -> bool:
+    return isinstance(x, list) and len(x) == 3 and all(_finite(v) for v in x)
+
+
+def _report_fields(report, where: str):
+    """(pieces [(id, file)], expected volume, volume tolerance, joints) from report.json, every field checked for
+    its type; VolpuzzleError naming the field otherwise."""
+    def bad(field, what, got, expected):
+        return VolpuzzleError(f"{where}: {field}: {what} (got {_short(got)}, expected {expected})")
+
+    if not isinstance(report, dict):
+        raise bad("(top level)", "not an object", report, "a JSON object with pieces, checks, joints")
+    entries = report.get("pieces")
+    if entries is None or entries == []:
+        raise VolpuzzleError(f"{where}: lists no pieces")
+    if not isinstance(entries, list):
+        raise bad("pieces", "not a list", entries, "a list of {id, file, ...} objects")
+    pieces, ids, files = [], set(), set()
+    for k, e in enumerate(entries):
+        if not isinstance(e, dict):
+            raise bad(f"pieces[{k}]", "not an object", e, "an object with id and file")
+        pid, rel = e.get("id"), e.get("file")
+        if not isinstance(pid, str) or not pid:
+            raise bad(f"pieces[{k}].id", "not a piece id", pid, "a text such as p0-0-0")
+        if not isinstance(rel, str) or not rel:
+            raise bad(f"pieces[{k}].file", "not a file name", rel, "a relative path such as pieces/p0-0-0.stl")
+        if pid in ids:
+            raise bad(f"pieces[{k}].id", "given twice", pid, "each piece once")
+        key = rel.replace("\\", "/").lstrip("./")
+        if key in files:
+            raise bad(f"pieces[{k}].file", "the file of another piece too", rel, "one file per piece")
+        ids.add(pid)
+        files.add(key)
+        pieces.append((pid, rel))
+    old = report.get("checks", {})
+    model = report.get("model", {})
+    for name, value in (("checks", old), ("model", model)):
+        if value is not None and not isinstance(value, dict):
+            raise bad(name, "not an object", value, "a JSON object")
+    old, model = old or {}, model or {}
+    expected = old.get("expected_volume_mm3")
+    field = "checks.expected_volume_mm3"
+    if expected is None:
+        expected, field = model.get("volume_mm3"), "model.volume_mm3"
+    if expected is None:
+        raise VolpuzzleError(f"{where}: no expected volume (checks.expected_volume_mm3 or model.volume_mm3)")
+    if not _finite(expected) or not expected > 0:
+        raise bad(field, "not a positive volume", expected, "a finite number of mm^3 > 0")
+    tol = old.get("volume_tolerance", 0.005)
+    if not _finite(tol) or not 0 <= tol < 1:
+        raise bad("checks.volume_tolerance", "not a fraction", tol, "a number from 0 to 1")
+    joints = report.get("joints") or []
+    if not isinstance(joints, list):
+        raise bad("joints", "not a list", joints, "a list of joint objects")
+    for k, j in enumerate(joints):
+        f = f"joints[{k}]"
+        if not isinstance(j, dict):
+            raise bad(f, "not an object", j, "an object with pin_piece, hole_piece, center_mm, direction, ...")
+        for key in ("pin_piece", "hole_piece"):
+            if not isinstance(j.get(key), str):
+                raise bad(f"{f}.{key}", "not a piece id", j.get(key), "a text such as p0-0-0")
+        if not _vec3(j.get("center_mm")):
+            raise bad(f"{f}.center_mm", "not a point", j.get("center_mm"), "3 finite numbers")
+        d = j.get("direction")
+        if not _vec3(d) or not 0.5 < math.sqrt(sum(x * x for x in d)) < 2:
+            raise bad(f"{f}.direction", "not a unit direction", d, "3 finite numbers of length 1")
+        for key, lo in (("radius_mm", 0.0), ("length_mm", 0.0)):
+            v = j.get(key)
+            if not _finite(v) or not lo < v < 1e4:
+                raise bad(f"{f}.{key}", "not a size", v, "a finite number of mm, > 0")
+        c = j.get("clearance_mm", 0.0)
+        if not _finite(c) or not 0 <= c < j["radius_mm"] * 10:
+            raise bad(f"{f}.clearance_mm", "not a clearance", c, "a finite number of mm, >= 0")
+        if not isinstance(j.get("style", "pin"), str):
+            raise bad(f"{f}.style", "not a joint style", j.get("style"), "pin or dowel")
+    return pieces, float(expected), float(tol), joints
+
+
+def _short(value) -> str:
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxstring, r.maxother, r.maxlist, r.maxdict = 40, 40, 4, 3
+    return r.repr(value)
 
 
 def _cylinder(center, direction, radius, start, stop, segments=48):
@@ -307,43 +465,47 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> l
 def check_directory(directory, raise_on_failure: bool = True) -> dict:
     """`volpuzzle check DIR`: re-run the checks on a built puzzle from its files alone.
 
-    Reads report.json for the piece list and the expected volume; every piece file must exist and load.
-    Returns the checks dict plus "missing_files" and a one-line "summary"; raises VolpuzzleError when the
-    folder is no build, and GeometryError listing every failure when a check fails (unless
+    Reads report.json for the piece list and the expected volume; every piece file must be a regular file inside
+    DIR (no '..', no absolute path, no symlink on the way) and load. Returns the checks dict plus "missing_files"
+    and a one-line "summary"; raises VolpuzzleError when the folder is no build or report.json is malformed or
+    points outside the folder, and GeometryError listing every failure when a check fails (unless
     raise_on_failure is False).
     """
     directory = Path(directory)
     report_path = directory / "report.json"
-    if not report_path.is_file():
-        raise VolpuzzleError(f"{directory}: not a volpuzzle output folder (no report.json)")
     try:
-        report = json.loads(report_path.read_text(encoding="utf-8"))
+        is_dir = directory.is_dir()
+        has_report = report_path.exists() or report_path.is_symlink()
     except (OSError, ValueError) as e:
-        raise VolpuzzleError(f"{report_path}: unreadable report: {e}") from e
-    entries = report.get("pieces") or []
-    if not entries:
-        raise VolpuzzleError(f"{report_path}: lists no pieces")
-    old = report.get("checks") or {}
-    expected = old.get("expected_volume_mm3")
-    if expected is None:
-        expected = (report.get("model") or {}).get("volume_mm3")
-    if not expected:
-        raise VolpuzzleError(f"{report_path}: no expected volume (checks.expected_volume_mm3 or model.volume_mm3)")
+        raise VolpuzzleError(f"{directory!s}: cannot open the folder ({getattr(e, 'strerror', None) or e})") from None
+    if not is_dir:
+        raise VolpuzzleError(f"{directory}: not a folder (expected a volpuzzle output folder)")
+    if not has_report:
+        raise VolpuzzleError(f"{directory}: not a volpuzzle output folder (no report.json)")
+    _, raw = _inside_file(directory, "report.json", str(report_path), _REPORT_MAX_BYTES)
+    try:
+        report = json.loads(raw.decode("utf-8"), parse_constant=_no_constant, parse_int=_small_int,
+                            parse_float=_finite_float)
+    except RecursionError:
+        raise VolpuzzleError(f"{report_path}: unreadable report: nested too deeply") from None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise VolpuzzleError(f"{report_path}: unreadable report: {str(e)[:200]}") from None
+    entries, expected, tolerance, joints = _report_fields(report, str(report_path))
     pieces, missing, failures = [], [], []
-    for e in entries:
-        path = directory / e["file"]
-        if not path.is_file():
-            missing.append(e["file"])
+    for k, (pid, rel) in enumerate(entries):
+        try:
+            path, data = _inside_file(directory, rel, f"{report_path}: pieces[{k}].file", _PIECE_MAX_BYTES)
+        except FileNotFoundError:
+            missing.append(rel)
             continue
         try:
-            pieces.append((e["id"], _load_mesh(path)))
+            pieces.append((pid, _load_mesh(path, data)))
         except VolpuzzleError as err:
             failures.append(str(err))
-    checks = check_pieces(pieces, float(expected),
-                          volume_tolerance=float(old.get("volume_tolerance", 0.005)))
+    checks = check_pieces(pieces, expected, volume_tolerance=tolerance)
     checks["missing_files"] = missing
-    joint_failures = check_joints(dict(pieces), report.get("joints") or [])
-    checks["joints_checked"] = len(report.get("joints") or [])
+    joint_failures = check_joints(dict(pieces), joints)
+    checks["joints_checked"] = len(joints)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
                           + joint_failures)
     checks["passed"] = not checks["failures"]
@@ -354,3 +516,20 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     if raise_on_failure:
         assert_passed(checks, str(directory))
     return checks
+
+
+def _no_constant(name):
+    raise ValueError(f"{name} is not JSON")
+
+
+def _finite_float(text):
+    x = float(text)
+    if not math.isfinite(x):
+        raise ValueError(f"the number {text[:12]}... ({len(text)} characters) overflows double precision")
+    return x
+
+
+def _small_int(text):
+    if len(text.lstrip("-")) > 30:
+        raise ValueError(f"a number of {len(text.lstrip('-'))} digits ({text[:12]}...), expected at most 30")
+    return int(text)

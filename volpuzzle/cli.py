@@ -1,7 +1,9 @@
 """The command line. The only module that imports click."""
 
 import json
+import math
 import os
+import signal
 import sys
 import traceback
 
@@ -13,20 +15,52 @@ from .errors import VolpuzzleError
 
 def _run(func, *args, **kwargs):
     """Expected failures become one line on stderr and exit 1; a bug says so in one line (VOLPUZZLE_DEBUG=1 for more)."""
+    previous = _stop_on_sigterm()
     try:
         return func(*args, **kwargs)
     except VolpuzzleError as e:
-        click.echo(f"error: {e}", err=True)
+        click.echo(f"error: {_one_line(e)}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)
+    except _Terminated:
+        click.echo("terminated", err=True)
+        sys.exit(128 + signal.SIGTERM)
+    except MemoryError:
+        click.echo("error: out of memory (the machine has too little for this model, grid and tolerance; try a "
+                   "coarser output.tolerance or a smaller grid)", err=True)
+        sys.exit(1)
     except Exception as e:  # noqa: BLE001 - the user must never see a bare traceback
         if os.environ.get("VOLPUZZLE_DEBUG"):
             traceback.print_exc()
-        click.echo(f"internal error: {type(e).__name__}: {e} (please report it; set VOLPUZZLE_DEBUG=1 for details)",
-                   err=True)
+        click.echo(f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; set VOLPUZZLE_DEBUG=1 for "
+                   f"details)", err=True)
         sys.exit(2)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised where the program is, so that it unwinds like Ctrl-C: the export stage removes its temporary
+    folder on the way out (a BaseException, like KeyboardInterrupt, so no `except Exception` swallows it)."""
+
+
+def _stop_on_sigterm():
+    """Make SIGTERM unwind the stack like SIGINT -> the previous handler (None when not on the main thread)."""
+    def handler(signum, frame):
+        raise _Terminated()
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (e.g. a test runner's worker): leave signals alone
+        return None
+
+
+def _one_line(e) -> str:
+    """The message on one line: a path or a value with a newline in it must not break the one-line rule."""
+    return " ".join(str(e).split("\n")).replace("\r", " ")
 
 
 @click.group()
@@ -41,12 +75,14 @@ def cli():
 @click.option("--format", "fmt", type=click.Choice(["stl", "3mf"]), help="File format of the pieces.")
 @click.option("--seed", type=int, help="Override randomize.seed.")
 @click.option("--jobs", type=click.IntRange(min=1), help="Pieces built in parallel (default: the number of cores).")
-@click.option("--force", is_flag=True, help="Replace an existing output folder.")
-def build(spec, output_dir, fmt, seed, jobs, force):
+@click.option("--force", is_flag=True, help="Replace an existing output folder that volpuzzle wrote.")
+@click.option("--allow-large", is_flag=True, help="Lift the resource limits (pieces, triangles, control points).")
+def build(spec, output_dir, fmt, seed, jobs, force, allow_large):
     """Run the whole pipeline and write the output folder."""
     from .pipeline import build as run_build
 
-    report = _run(run_build, spec, output_dir=output_dir, fmt=fmt, seed=seed, jobs=jobs, force=force)
+    report = _run(run_build, spec, output_dir=output_dir, fmt=fmt, seed=seed, jobs=jobs, force=force,
+                  allow_large=allow_large)
     checks = report["checks"]
     click.echo(f"built {len(report['pieces'])} pieces, {len(report['joints'])} joints in "
                f"{report['timings_s'].get('total', 0):.1f} s -> {report['spec']['output']['directory']} "
@@ -55,11 +91,12 @@ def build(spec, output_dir, fmt, seed, jobs, force):
 
 @cli.command()
 @click.argument("spec", type=click.Path(dir_okay=False))
-def validate(spec):
+@click.option("--allow-large", is_flag=True, help="Lift the resource limits (pieces, triangles, control points).")
+def validate(spec, allow_large):
     """Check the spec and the model without building."""
     from .pipeline import validate as run_validate
 
-    summary = _run(run_validate, spec)
+    summary = _run(run_validate, spec, allow_large=allow_large)
     click.echo(f"{spec}: valid — {summary['pieces']} pieces, {summary['joints']} joints, model "
                f"{summary['model']['volume_mm3']:.6g} mm^3, {summary['model']['handedness']}-handed")
 
@@ -77,7 +114,18 @@ def info(model, patch, as_json):
         return model_info(load_model(model, patch=patch), path=model, patch=patch)
 
     data = _run(run)
-    click.echo(json.dumps(data) if as_json else format_info(data))
+    # JSON has no Infinity or NaN: a figure that is not finite is null
+    click.echo(json.dumps(_finite(data), allow_nan=False) if as_json else format_info(data))
+
+
+def _finite(x):
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
 
 
 @cli.command()

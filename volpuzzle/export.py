@@ -23,9 +23,15 @@ import trimesh
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import write_3mf
 
-__all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS"]
+__all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md",
+           "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries"]
 
 FORMATS = ("stl", "3mf")
+# Every folder volpuzzle writes holds this file; --force replaces only folders that do (a report.json alone proves
+# nothing: anyone's folder may hold one). While a build runs, its temporary folder's marker names the process, so
+# a later build can tell a temporary folder left by a killed build from one a running build still writes.
+MARKER = ".volpuzzle"
+_MARKER_KIND = "volpuzzle-output"
 # Significant digits kept for floats in report.json: far below print resolution, free of 0.30000000000000004.
 _DIGITS = 9
 
@@ -226,24 +232,170 @@ def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pi
         write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)], materials=[pins])
 
 
-def _looks_like_output(target: Path) -> bool:
-    """Only folders volpuzzle wrote (or empty ones) are replaced with force, never a user's other folder."""
-    return (target / "report.json").is_file() or not any(target.iterdir())
+def _marker_text(pid=None) -> str:
+    import socket
+
+    return json.dumps({"kind": _MARKER_KIND, "pid": pid, "host": socket.gethostname() if pid else None}) + "\n"
 
 
-def check_target(target, force: bool = False) -> Path:
-    """Raise ExportError unless write_build may write target: absent, or with force an earlier output
-    (a folder holding report.json) or an empty folder. Cheap: call it before the work starts, too."""
+def _read_marker(folder: Path):
+    """The marker dict of a folder volpuzzle wrote, or None (absent, a symlink, unreadable, someone else's)."""
+    path = folder / MARKER
+    try:
+        if path.is_symlink() or not path.is_file() or path.stat().st_size > 4096:
+            return None
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and data.get("kind") == _MARKER_KIND else None
+
+
+def spec_inputs(spec) -> list:
+    """The files a build reads (the spec, the model, a NURBS cage): a folder holding one is never replaced."""
+    m = spec.model
+    cage = getattr(m, "cage", None)
+    return [p for p in (spec.source, m.nurbs, m.mesh, getattr(cage, "nurbs", None)) if p is not None]
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        Path(os.path.realpath(path)).relative_to(os.path.realpath(folder))
+        return True
+    except ValueError:
+        return False
+
+
+def check_target(target, force: bool = False, protect=()) -> Path:
+    """Raise ExportError unless write_build may write target: absent, or with force an empty folder or one that
+    volpuzzle wrote (it holds the MARKER file) and that holds none of the `protect` paths (the spec and the model
+    being built). Cheap: call it before the work starts, too."""
     target = Path(target)
-    if target.exists() or target.is_symlink():
+    try:
+        present = target.exists() or target.is_symlink()
+    except (OSError, ValueError) as e:
+        raise ExportError(f"output.directory: cannot use {str(target)!r} ({getattr(e, 'strerror', None) or e})") \
+            from None
+    if present:
         if not force:
             raise ExportError(f"{target} exists; use --force to replace it")
         if not target.is_dir() or target.is_symlink():
             raise ExportError(f"{target} exists and is not a folder; refusing to replace it")
-        if not _looks_like_output(target):
-            raise ExportError(f"{target} is not a volpuzzle output folder (no report.json) and not empty; "
-                              f"refusing to replace it, even with --force")
+        mine = [p for p in protect if _inside(p, target)]
+        if mine:
+            raise ExportError(f"{target} holds {mine[0]}, which this build reads; refusing to replace it, even with "
+                              f"--force (expected an output folder apart from the spec and the model)")
+        try:
+            empty = not any(target.iterdir())
+        except OSError as e:
+            raise ExportError(f"{target}: cannot list the folder ({e.strerror})") from None
+        if not empty and _read_marker(target) is None and not _legacy_output(target):
+            raise ExportError(f"{target} is not a volpuzzle output folder (no {MARKER} marker that volpuzzle "
+                              f"writes) and not empty; refusing to replace it, even with --force (remove it "
+                              f"yourself or choose another -o)")
     return target
+
+
+def _alive(pid) -> bool:
+    if pid is None:
+        return False  # a finished folder not yet renamed: its build is over
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError, TypeError):
+        return True  # someone's process, or no pid: not ours to judge
+    return True
+
+
+def remove_stale_temporaries(target: Path) -> list:
+    """Remove `.NAME.tmp-*` and `.NAME.old-*` folders beside target that a killed build left: only folders
+    with our marker whose process is gone (on this host). -> the names removed."""
+    import socket
+
+    target = Path(target)
+    removed = []
+    try:
+        siblings = list(target.parent.iterdir())
+    except OSError:
+        return removed
+    host = socket.gethostname()
+    for p in siblings:
+        if not (p.name.startswith(f".{target.name}.tmp-") or p.name.startswith(f".{target.name}.old-")):
+            continue
+        if p.is_symlink() or not p.is_dir():
+            continue
+        marker = _read_marker(p)
+        if marker is None:
+            if not _legacy_temporary(p):
+                continue
+            marker = {"pid": None, "host": None}
+        if p.name.startswith(f".{target.name}.tmp-") and (marker.get("host") not in (host, None)
+                                                           or _alive(marker.get("pid"))):
+            continue  # a running build's, or another machine's: leave it
+        if p.name.startswith(f".{target.name}.old-") and not target.is_dir():
+            continue  # killed between the two renames: this is the only copy of the previous output
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p.name)
+    return removed
+
+
+_OUTPUT_NAMES = {"pieces", "dowels", "plates", "puzzle.3mf", "preview.png", "report.json", "report.md"}
+
+
+def _legacy_temporary(folder: Path, age_s: float = 3600.0) -> bool:
+    """A temporary folder of a volpuzzle from before the marker: mkdtemp's 8-character suffix, nothing in it but
+    what the export stage writes, and untouched for an hour (no build takes that long to export)."""
+    suffix = folder.name.rsplit(".tmp-", 1)[-1]
+    if ".tmp-" not in folder.name or len(suffix) != 8:
+        return False
+    try:
+        names = {p.name for p in folder.iterdir()}
+        return names <= _OUTPUT_NAMES and time.time() - folder.stat().st_mtime > age_s
+    except OSError:
+        return False
+
+
+def _legacy_output(folder: Path) -> bool:
+    """An output folder of a volpuzzle from before the marker: nothing in it but what the export stage writes, and
+    a report.json that volpuzzle wrote (it names its version). A folder with any other file is not one."""
+    try:
+        names = {p.name for p in folder.iterdir()}
+        report = folder / "report.json"
+        if not names <= _OUTPUT_NAMES or report.is_symlink() or not report.is_file():
+            return False
+        if report.stat().st_size > (64 << 20):
+            return False
+        data = json.loads(report.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("volpuzzle_version"), str) and "pieces" in data
+
+
+def _failure(target: Path, e: BaseException, tmp: Path | None = None) -> str:
+    """One line for a failed write: the file (as it would be named in the target), the reason, and that nothing
+    was left."""
+    if isinstance(e, OSError):
+        name = os.fspath(e.filename) if isinstance(e.filename, (str, Path)) else None
+        if name and tmp is not None and name.startswith(os.fspath(tmp)):
+            name = os.fspath(target) + name[len(os.fspath(tmp)):]
+        where = f" while writing {name}" if name else ""
+        reason = e.strerror or str(e)
+        return f"{target}: writing the output failed{where}: {reason}; nothing was written"
+    return f"{target}: writing the output failed: {e}; nothing was written"
+
+
+def _free_space_problem(parent: Path, items) -> str | None:
+    """A message when the disk beside the target plainly cannot hold the output, else None. The output takes
+    about 50 bytes a triangle for the pieces, and as much again for the assembled puzzle and the plates."""
+    need = 3 * 50 * sum(len(m.faces) for _, m in items) + (1 << 20)
+    try:
+        free = shutil.disk_usage(parent).free
+    except OSError:
+        return None
+    if free < need:
+        return (f"{parent}: not enough free disk space for the output (needs about {need / 1e6:.3g} MB, "
+                f"{free / 1e6:.3g} MB free)")
+    return None
 
 
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
@@ -275,20 +427,40 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     parent = target.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
-        tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it private; the output folder should not be
     except OSError as e:
-        raise ExportError(f"{target}: cannot create the output folder: {e}") from e
+        raise ExportError(f"{target}: cannot create the output folder: {e.strerror or e}") from None
+    remove_stale_temporaries(target)
+    low = _free_space_problem(parent, items)
+    if low:
+        raise ExportError(low)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
+    except OSError as e:
+        raise ExportError(f"{target}: cannot create the output folder: {e.strerror or e}") from None
+    try:
+        tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it private; the output folder should not be
+        (tmp / MARKER).write_text(_marker_text(os.getpid()), encoding="utf-8")
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ExportError(_failure(target, e)) from None
     # lib3mf lets go of the GIL while it compresses, so 3MF files (and extras named *.3mf) are written on one worker
     # thread while this one writes the rest and paints the preview.
     worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="volpuzzle-3mf")
     pending = []
 
+    def named(path, job, *args):
+        try:
+            job(*args)
+        except OSError as e:
+            if e.filename is None:  # a failed write() names no file: say which one it was
+                raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from e
+            raise
+
     def write(path, job, *args):
         if path.suffix == ".3mf":
-            pending.append(worker.submit(job, *args))
+            pending.append(worker.submit(named, path, job, *args))
         else:
-            job(*args)
+            named(path, job, *args)
 
     try:
         report = dict(report)
@@ -329,15 +501,19 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         report["timings_s"] = {k: (round(float(v), 3) if isinstance(v, (int, float)) else v)
                                for k, v in timings.items()}
         report = clean_json(report)
-        (tmp / "report.json").write_text(dumps_report(report) + "\n", encoding="utf-8")
-        (tmp / "report.md").write_text(render_report_md(report), encoding="utf-8")
+        for name, text in (("report.json", dumps_report(report) + "\n"), ("report.md", render_report_md(report)),
+                           (MARKER, _marker_text())):  # the marker last: finished, no process owns it any more
+            named(tmp / name, (tmp / name).write_text, text, "utf-8")
         _move_into_place(tmp, target)
     except BaseException as e:
         worker.shutdown(wait=True, cancel_futures=True)  # nothing may still write into tmp once it is removed
         shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(e, VolpuzzleError) or not isinstance(e, Exception):
+        if not isinstance(e, Exception):
             raise
-        raise ExportError(f"{target}: writing the output failed: {e}") from e
+        cause = e.__cause__ if isinstance(e, ExportError) and isinstance(e.__cause__, OSError) else e
+        if isinstance(e, VolpuzzleError) and cause is e:
+            raise
+        raise ExportError(_failure(target, cause, tmp)) from e
     finally:
         worker.shutdown(wait=True)
     return target

@@ -144,6 +144,9 @@ def _check_grid_vs_tolerance(spec, tiling, fmap):
 
 def prepare(spec, timer=None, progress=None):
     """Every stage up to joints, without meshes: what `validate` runs. -> dict of stage results."""
+    from .limits import check_model_limits, check_spec_limits
+
+    check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
     from .joint import plan_joints
     from .mapping import Map
     from .randomize import family_from_spec
@@ -154,6 +157,7 @@ def prepare(spec, timer=None, progress=None):
     timer = timer or Timer()
     with timer("load", progress):
         model = load_model_for(spec)
+        check_model_limits(spec, model.volume)
     vol = model.volume
     with timer("verify", progress):
         model_check = verify_model(vol)
@@ -242,17 +246,18 @@ def _check_plate(spec, tiling, fmap):
                         f"{np.ceil(need[1]):.0f}])", source=spec.source)
 
 
-def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None):
+def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None,
+          allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
     from .check import assert_passed, check_pieces
     from .compose import compose
-    from .export import check_target, piece_colors, report_piece_entry, write_build
+    from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
     from .spec import load_spec, spec_to_dict, with_overrides
 
     progress = progress if progress is not None else Progress()
-    spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed)
-    target = check_target(Path(spec.output.directory), force)
+    spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
+    target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
     timer = Timer()
     stages = prepare(spec, timer, progress)
     _check_plate(spec, stages["tiling"], stages["fmap"])
@@ -527,11 +532,12 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None):
     return placements, plates, extras
 
 
-def validate(spec_path):
+def validate(spec_path, allow_large=False):
     """`volpuzzle validate`: the spec, the model and every cross-check, without building. -> summary dict"""
-    from .spec import load_spec
+    from .spec import load_spec, with_overrides
 
-    spec = load_spec(spec_path)
+    spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     stages = prepare(spec)
-    return {"name": spec.name, "pieces": int(np.prod(spec.grid)), "joints": len(stages["joints"]),
+    _check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
+    return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(stages["joints"]),
             "model": stages["model_report"], "randomize": stages["randomize_report"]}

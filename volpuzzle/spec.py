@@ -16,12 +16,14 @@ import difflib
 import math
 import re
 import reprlib
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from .errors import SpecError
+from .limits import LIMIT_HELP, Limits
 
 __all__ = [
     "AXES", "UNIT_SCALE", "MESH_SUFFIXES", "NURBS_SUFFIXES", "CAGE_TYPES",
@@ -42,9 +44,11 @@ SPLIT_MODES = ("uniform", "knots")
 
 DEFAULT_CAGE_PADDING = 1.0  # mm: keeps the mesh off the cage boundary, where Booleans would be coplanar
 _NAME_RE = re.compile(r"[A-Za-z0-9_-]+")
+_YAML11_FLOAT = re.compile(r"[-+]?[0-9]+(\.[0-9]*)?[eE][-+]?[0-9]+")
+_MAX_CLEARANCE = 2.0  # mm: print clearances are tenths of a millimetre; more leaves the pin loose in its hole
 _NAME_MAX = 100
 
-_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output")
+_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "limits")
 _MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair")
 _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
@@ -125,6 +129,7 @@ class Spec:
     randomize: RandomizeSpec | None = None
     joints: JointSpec = field(default_factory=JointSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
+    limits: Limits = field(default_factory=Limits)
     source: Path | None = None
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -246,7 +251,7 @@ class _Checker:
             return None
         return value
 
-    def number(self, path, value, *, above=None, at_least=None, allow_none=False):
+    def number(self, path, value, *, above=None, at_least=None, allow_none=False, at_most=None, why=""):
         if at_least is not None:
             expected = f"a number >= {_num(at_least)}"
         elif above is not None:
@@ -257,6 +262,9 @@ class _Checker:
             expected += ", or nothing for the default"
         if value is None and allow_none:
             return None
+        if isinstance(value, str) and _YAML11_FLOAT.fullmatch(value.strip()):
+            # YAML 1.1 reads 1e-6 (no decimal point) as a text; it is a number in every other reading
+            value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.bad(path, "not a number", _show(value), expected)
             return None
@@ -265,6 +273,9 @@ class _Checker:
             return None
         if (at_least is not None and value < at_least) or (above is not None and value <= above):
             self.bad(path, "out of range", _show(value), expected)
+            return None
+        if at_most is not None and value > at_most:
+            self.bad(path, "too large", _show(value), f"{expected} and <= {_num(at_most)}{why}")
             return None
         return float(value)
 
@@ -298,13 +309,21 @@ class _Checker:
                      f"{what} ending in {_one_of(suffixes)[8:]}")
             return None
         try:
-            exists, is_dir = resolved.is_file(), resolved.is_dir()
-        except OSError:
-            exists, is_dir = False, False
-        if is_dir:
+            st = resolved.stat()
+        except FileNotFoundError:
+            st = None
+        except (OSError, ValueError) as exc:
+            self.bad(path, f"cannot be opened ({getattr(exc, 'strerror', None) or exc})", _show(value),
+                     f"the path of {what}")
+            return None
+        if st is not None and stat.S_ISDIR(st.st_mode):
             self.bad(path, "is a folder, not a file", repr(str(resolved)), f"{what} file")
             return None
-        if not exists:
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a device or socket"
+            self.bad(path, f"is {kind}, not a regular file", repr(str(resolved)), f"{what} as a regular file")
+            return None
+        if st is None:
             self.bad(path, "file not found", repr(str(resolved)),
                      f"an existing file; relative paths are read from the spec's folder {self.base}")
             return None
@@ -547,8 +566,11 @@ class _Checker:
         space = self.enum("joints.space", j.get("space", d.space), JOINT_SPACES)
         radius = self.number("joints.radius", j.get("radius"), above=0, allow_none=True)
         length = self.number("joints.length", j.get("length"), above=0, allow_none=True)
-        clearance = self.number("joints.clearance", j.get("clearance", d.clearance), at_least=0)
-        axial = self.number("joints.axial_clearance", j.get("axial_clearance", d.axial_clearance), at_least=0)
+        why = "; a print clearance is a few tenths of a millimetre, 0.1 to 0.4 mm for most printers"
+        clearance = self.number("joints.clearance", j.get("clearance", d.clearance), at_least=0,
+                                at_most=_MAX_CLEARANCE, why=why)
+        axial = self.number("joints.axial_clearance", j.get("axial_clearance", d.axial_clearance), at_least=0,
+                            at_most=_MAX_CLEARANCE, why=why)
         if clearance is not None and radius is not None and clearance >= radius:
             self.bad("joints.clearance", "not smaller than the pin radius", _show(j.get("clearance", d.clearance)),
                      f">= 0 and < joints.radius = {_num(radius)}; or a radius > {_num(clearance)}")
@@ -568,10 +590,15 @@ class _Checker:
                 self.bad("output.directory", "not a folder path", _show(raw),
                          "a folder path, relative to the current directory")
             else:
-                directory = _resolve_dir(raw)
-                if directory.exists() and not directory.is_dir():
-                    self.bad("output.directory", "is a file, not a folder", repr(str(directory)),
-                             "a folder path (it is created, or replaced with --force)")
+                try:
+                    directory = _resolve_dir(raw)
+                    if directory.exists() and not directory.is_dir():
+                        self.bad("output.directory", "is a file, not a folder", repr(str(directory)),
+                                 "a folder path (it is created, or replaced with --force)")
+                except (OSError, ValueError) as exc:
+                    self.bad("output.directory", f"not a usable folder path ({getattr(exc, 'strerror', None) or exc})",
+                             _show(raw), "a folder path, relative to the current directory")
+                    directory = None
         if directory is None and name is not None:
             directory = _resolve_dir(Path("out") / name)
         fmt = self.enum("output.format", o.get("format", d.format), FORMATS)
@@ -592,6 +619,23 @@ class _Checker:
         return OutputSpec(directory=directory, format=fmt or d.format, tolerance=tol or d.tolerance, plate=plate,
                           spacing=d.spacing if spacing is None else spacing,
                           labels=d.labels if labels is None else labels)
+
+
+    def limits(self, value):
+        """limits: {pieces: N, ...} raises the resource limits (limits.py) this spec means to pass."""
+        d = Limits()
+        m = self.mapping("limits", value, tuple(LIMIT_HELP))
+        if m is None:
+            return d
+        raised = {}
+        for key, item in m.items():
+            if isinstance(item, float) and math.isfinite(item) and item == int(item) and abs(item) < 1e15:
+                item = int(item)  # `triangles: 2e7` is a plain count
+            n = self.integer(f"limits.{key}", item, 1, what=f"an integer ({LIMIT_HELP[key]}; default "
+                                                          f"{getattr(d, key)})")
+            if n is not None:
+                raised[key] = n
+        return dataclasses.replace(d, **raised)
 
 
 _REQUIRED_HELP = {
@@ -676,6 +720,9 @@ def load_spec(path) -> Spec:
     """Read and check a spec file -> Spec, or raise one SpecError listing every mistake."""
     path = Path(path).expanduser()
     try:
+        if path.exists() and not path.is_dir() and not path.is_file():  # reading a FIFO would wait forever
+            raise SpecError([f"spec: not a regular file (got {str(path)!r}, a FIFO, device or socket, expected a "
+                             "YAML file)"], source=path)
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SpecError([f"spec: file not found (got {str(path.resolve())!r}, expected an existing YAML file)"],
@@ -689,6 +736,8 @@ def load_spec(path) -> Spec:
     except OSError as exc:
         raise SpecError([f"spec: cannot read the file (got {exc.strerror or exc}, expected a readable YAML "
                          "file)"], source=path) from None
+    except ValueError as exc:  # a NUL byte in the path
+        raise SpecError([f"spec: not a usable path (got {str(path)!r}: {exc}, expected a file path)"]) from None
     return load_spec_text(text, source=path)
 
 
@@ -710,25 +759,32 @@ def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     randomize = c.randomize(top.get("randomize"))
     joints = c.joints(top.get("joints"))
     output = c.output(top.get("output"), name)
+    limits = c.limits(top.get("limits"))
     if c.problems:
         raise SpecError(c.problems, source=source)
     return Spec(name=name, model=model, grid=grid, splits=splits, periodic=periodic, randomize=randomize,
-                joints=joints, output=output, source=source, raw=data)
+                joints=joints, output=output, limits=limits, source=source, raw=data)
 
 
 # ----------------------------------------------------------------------------------------------------
 # Overrides and the report form
 
 
-def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None) -> Spec:
-    """The spec with the CLI's -o / --format / --seed applied. --seed only matters when randomize is on."""
+def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None, allow_large=False) -> Spec:
+    """The spec with the CLI's -o / --format / --seed / --allow-large applied. --seed only matters when randomize
+    is on."""
     c = _Checker(spec.source.parent if spec.source else Path.cwd())
     output, randomize = spec.output, spec.randomize
+    limits = dataclasses.replace(spec.limits, unlimited=True) if allow_large else spec.limits
     if output_dir is not None:
-        directory = _resolve_dir(output_dir)
-        if directory.exists() and not directory.is_dir():
-            c.bad("output.directory", "is a file, not a folder", repr(str(directory)), "a folder path (-o)")
-        output = dataclasses.replace(output, directory=directory)
+        try:
+            directory = _resolve_dir(output_dir)
+            if directory.exists() and not directory.is_dir():
+                c.bad("output.directory", "is a file, not a folder", repr(str(directory)), "a folder path (-o)")
+            output = dataclasses.replace(output, directory=directory)
+        except (OSError, ValueError) as exc:
+            c.bad("output.directory", f"not a usable folder path ({getattr(exc, 'strerror', None) or exc})",
+                  _show(str(output_dir)), "a folder path (-o)")
     if fmt is not None:
         value = c.enum("output.format", fmt, FORMATS)
         if value:
@@ -739,7 +795,7 @@ def with_overrides(spec: Spec, output_dir=None, fmt=None, seed=None) -> Spec:
             randomize = dataclasses.replace(randomize, seed=value)
     if c.problems:
         raise SpecError(c.problems, source=spec.source)
-    return dataclasses.replace(spec, output=output, randomize=randomize)
+    return dataclasses.replace(spec, output=output, randomize=randomize, limits=limits)
 
 
 def spec_to_dict(spec: Spec) -> dict:
@@ -762,7 +818,7 @@ def spec_to_dict(spec: Spec) -> dict:
     model.update(units=m.units, size=m.size)
     r = spec.randomize
     j, o = spec.joints, spec.output
-    return {
+    out = {
         "name": spec.name,
         "model": model,
         "grid": list(spec.grid),
@@ -775,3 +831,7 @@ def spec_to_dict(spec: Spec) -> dict:
         "output": {"directory": None if o.directory is None else str(o.directory), "format": o.format,
                    "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels},
     }
+    raised = {k: getattr(spec.limits, k) for k in LIMIT_HELP if getattr(spec.limits, k) != getattr(Limits(), k)}
+    if raised:
+        out["limits"] = raised
+    return out

@@ -8,6 +8,7 @@ Every failure is a ModelError whose message starts with the file path and names 
 """
 
 import os
+import stat
 
 import numpy as np
 
@@ -16,11 +17,32 @@ from ..spline.knots import insert_knot
 from ..spline.volume import Volume
 
 HEAD_BYTES = 65536
+# Largest coordinate or knot a model may have, in its own units: far beyond any printable object, and small enough
+# that areas, volumes and Jacobians of it stay finite in double precision (1e308 made every figure inf or NaN).
+MAX_COORDINATE = 1e9
 UNITS = ("mm", "cm", "m", "in")
 AXES = "uvw"
 
 
 # --- helpers shared by the format modules ---------------------------------------------------------------------
+def regular_file_problem(path):
+    """None for a regular file (after symlinks), else what it is instead: 'no such file', 'a folder', 'a FIFO
+    (named pipe)' ... Reading a FIFO or a device would block or never end, so such paths are refused by name."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "no such file"
+    except (OSError, ValueError) as e:  # ValueError: a NUL byte in the path
+        return f"cannot be opened ({getattr(e, 'strerror', None) or e})"
+    if stat.S_ISREG(st.st_mode):
+        return None
+    if stat.S_ISDIR(st.st_mode):
+        return "is a directory, not a file"
+    kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode)
+            else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "not a file")
+    return f"is {kind}, not a regular file"
+
+
 def fail(path, field, message):
     """A ModelError 'PATH: FIELD: MESSAGE' (field may be empty)."""
     return ModelError(f"{path}: {field}: {message}" if field else f"{path}: {message}")
@@ -70,11 +92,32 @@ def make_volume(path, degrees, knots, points, weights=None, label=""):
     """Build a Volume from parsed data, clamping floating knot vectors; ModelErrors get the path (and patch label)
     as a prefix. points (n_u, n_v, n_w, 3) Cartesian, weights (n_u, n_v, n_w) or None."""
     where = f"{path}: {label}: " if label else f"{path}: "
+    _check_magnitudes(where, knots, points, weights)
     try:
         vol = _volume_clamped(degrees, knots, points, weights)
     except ModelError as e:
         raise ModelError(where + str(e)) from None
     return vol
+
+
+def _check_magnitudes(where, knots, points, weights):
+    for field, values in (("control points", points), *((f"knots[{a}]", k) for a, k in enumerate(knots))):
+        try:
+            a = np.asarray(values, dtype=float)
+        except (TypeError, ValueError):
+            continue  # the Volume reports the shape
+        with np.errstate(invalid="ignore"):
+            big = np.abs(a[np.isfinite(a)]) > MAX_COORDINATE
+        if big.any():
+            worst = float(np.max(np.abs(a[np.isfinite(a)])))
+            raise ModelError(f"{where}{field}: a value of magnitude {worst:.3g} is too large to compute with (got "
+                             f"{worst:.3g}, expected at most {MAX_COORDINATE:g} in the model's units)")
+    if weights is not None:
+        w = np.asarray(weights, dtype=float)
+        ok = w[np.isfinite(w) & (w > 0)]
+        if ok.size and float(ok.max()) > MAX_COORDINATE * float(ok.min()):
+            raise ModelError(f"{where}weights: range {float(ok.min()):.3g} to {float(ok.max()):.3g} is too wide to "
+                             f"compute with (expected a ratio of at most {MAX_COORDINATE:g})")
 
 
 def _volume_clamped(degrees, knots, points, weights):
@@ -112,10 +155,11 @@ def format_names():
 
 def _check_file(path):
     path = os.fspath(path)
-    if not os.path.exists(path):
+    problem = regular_file_problem(path)
+    if problem == "no such file":
         raise ModelError(f"{path}: no such file (expected a model file: .json, .xml or .itd)")
-    if os.path.isdir(path):
-        raise ModelError(f"{path}: is a directory, expected a model file")
+    if problem:
+        raise ModelError(f"{path}: {problem}, expected a model file")
     try:
         with open(path, "rb") as f:
             head = f.read(HEAD_BYTES)

@@ -9,7 +9,8 @@ Coefficients run u fastest: flat index = i + n_u * (j + n_v * k) (checked agains
 same volumes). Numbers are ASCII or base64 (format="B64Float64" etc., little-endian). A <MultiPatch> that lists
 geometry ids gives the patch order; geometries it does not list follow in file order.
 
-No entity expansion: a file with a DOCTYPE or ENTITY declaration is refused.
+No entity expansion: the XML goes through defusedxml, which refuses DOCTYPE and ENTITY declarations in any
+encoding (a text search for "<!ENTITY" misses them in UTF-16).
 """
 
 import base64
@@ -17,6 +18,8 @@ import binascii
 import re
 import xml.etree.ElementTree as ET
 
+import defusedxml
+import defusedxml.ElementTree as SafeET
 import numpy as np
 
 from . import fail, make_volume, parse_floats
@@ -38,13 +41,16 @@ def detect(path, head):
 def _parse(path):
     with open(path, "rb") as f:
         raw = f.read()
-    if re.search(rb"<!(DOCTYPE|ENTITY)", raw):
-        raise fail(path, "", "XML with DOCTYPE or ENTITY declarations is not accepted (no entity expansion)")
     # A comment before '<?xml ...?>' is common in G+Smo files and makes the declaration illegal for a strict
-    # parser; the declaration carries nothing we need (the text is UTF-8 or ASCII), so drop it.
-    raw = _DECL.sub(b"", raw, count=1)
+    # parser. The declaration names the encoding, so it is moved to the front rather than dropped.
+    if not raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        decl = _DECL.search(raw)
+        if decl is not None and decl.start() > 0:
+            raw = decl.group() + raw[:decl.start()] + raw[decl.end():]
     try:
-        return ET.fromstring(raw)
+        return SafeET.fromstring(raw, forbid_dtd=True)
+    except defusedxml.DefusedXmlException:
+        raise fail(path, "", "XML with DOCTYPE or ENTITY declarations is not accepted (no entity expansion)") from None
     except ET.ParseError as e:
         line, col = e.position
         raise fail(path, "", f"invalid or truncated XML at line {line} column {col + 1}: "

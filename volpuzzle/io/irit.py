@@ -20,6 +20,8 @@ NAME = "irit-itd"
 EXTENSIONS = (".itd", ".dat")
 _TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|\[|\]|#[^\n]*|[^\s\[\]"#]+')
 _PT = re.compile(r"^([EP])(\d+)$", re.I)
+_MAX_DEPTH = 64  # IRIT objects nest a few levels; deeper is not a model (and would exhaust the recursion)
+_MAX_DEGREE = 7  # as spline.Volume
 
 
 def detect(path, head):
@@ -40,6 +42,9 @@ def _tree(path, text):
         if t.startswith("#"):
             continue
         if t == "[":
+            if len(stack) > _MAX_DEPTH:
+                raise fail(path, "", f"invalid IRIT data: brackets nested deeper than {_MAX_DEPTH} levels at line "
+                                     f"{line} (expected objects a few levels deep)")
             stack.append([])
             stack[-1].append(line)  # remember where the list starts, for messages
         elif t == "]":
@@ -117,8 +122,16 @@ def _trivar(path, node, label):
         if n < 1 or k < 2 or k > n:
             raise fail(path, f"{label}: {'uvw'[a]}", f"expected order >= 2 and length >= order, got length {n}, "
                                                     f"order {k}")
+        if k > _MAX_DEGREE + 1:
+            raise fail(path, f"{label}: {'uvw'[a]}", f"order {k} (degree {k - 1}) is not supported "
+                                                    f"(expected order 2 to {_MAX_DEGREE + 1})")
 
     kvs, pts = [], []
+    count = lengths[0] * lengths[1] * lengths[2]  # Python integers: no overflow, and nothing allocated by it
+    points = sum(1 for x in lists if len(x) > 1 and isinstance(x[1], str) and re.match(r"^[-+.\d]", x[1]))
+    if points != count:
+        raise fail(path, f"{label}: control points", f"expected {lengths[0]} x {lengths[1]} x {lengths[2]} = "
+                                                     f"{count} points, got {points}")
     for x in lists:
         body = x[1:]
         if body and isinstance(body[0], str) and body[0].upper() in ("KV", "KVP"):
@@ -146,7 +159,6 @@ def _trivar(path, node, label):
         knots = [np.r_[np.zeros(n), np.ones(n)] for n in lengths]
 
     width = 4 if rational else 3
-    count = lengths[0] * lengths[1] * lengths[2]
     if len(pts) != count:
         raise fail(path, f"{label}: control points", f"expected {lengths[0]} x {lengths[1]} x {lengths[2]} = {count} "
                                                      f"points, got {len(pts)}")

@@ -19,11 +19,13 @@ import numpy as np
 import trimesh
 
 from ..errors import ModelError
+from . import regular_file_problem
 
 EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 _TRIMESH_TYPES = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf", ".glb": "glb"}
 
-__all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_problems", "check_mesh", "repair_mesh"]
+__all__ = ["EXTENSIONS", "load_mesh", "load_mesh_scaled", "read_mesh", "mesh_from_bytes", "mesh_problems", "check_mesh",
+           "repair_mesh"]
 
 
 def _err(path, message):
@@ -126,10 +128,11 @@ def read_mesh(path):
     """Read a mesh file as it is (model units, no checks beyond readability) -> trimesh.Trimesh."""
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
-    if not os.path.exists(path):
+    problem = regular_file_problem(path)
+    if problem == "no such file":
         raise _err(path, "no such file (expected a mesh: " + ", ".join(EXTENSIONS) + ")")
-    if os.path.isdir(path):
-        raise _err(path, "is a directory, expected a mesh file")
+    if problem:
+        raise _err(path, f"{problem}, expected a mesh file")
     if ext not in EXTENSIONS:
         raise _err(path, f"unsupported mesh extension {ext or '(none)'!r} (expected one of " + ", ".join(EXTENSIONS)
                    + ")")
@@ -138,12 +141,40 @@ def read_mesh(path):
             data = f.read()
     except OSError as e:
         raise _err(path, f"cannot be read ({e.strerror})") from None
+    return mesh_from_bytes(path, data)
+
+
+def mesh_from_bytes(path, data):
+    """The bytes of a mesh file named path (its extension decides the format) -> trimesh.Trimesh; every failure
+    a ModelError naming path, every vertex finite. A 3MF is read by lib3mf from path itself (it reads files by
+    name), so for 3MF the bytes must be that file's."""
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in EXTENSIONS:
+        raise _err(path, f"unsupported mesh extension {ext or '(none)'!r} (expected one of " + ", ".join(EXTENSIONS)
+                   + ")")
+    try:
+        mesh = _mesh_from_bytes(path, ext, data)
+    except MemoryError:
+        raise _err(path, "too large to read into memory") from None
+    v = np.asarray(mesh.vertices, dtype=float)
+    if len(v) and not np.all(np.isfinite(v)):
+        # a NaN vertex would be merged away or silently repaired into a different solid
+        raise _err(path, f"{int(np.sum(~np.isfinite(v).all(axis=1)))} vertices have non-finite coordinates (NaN or "
+                         "infinity)")
+    return mesh
+
+
+def _mesh_from_bytes(path, ext, data):
     if not data.strip():
         raise _err(path, "the file is empty, expected a closed triangle mesh")
     if ext == ".stl":
         tris = _read_stl(path, data)
         if len(tris) == 0:
             raise _err(path, "the STL holds no triangles")
+        if not np.all(np.isfinite(tris)):
+            bad = int(np.argwhere(~np.isfinite(tris).all(axis=(1, 2)))[0, 0])
+            raise _err(path, f"triangle {bad} has a non-finite vertex coordinate (NaN or infinity)")
         # process=True merges equal vertices, which is what turns a triangle soup into a connected mesh
         return trimesh.Trimesh(**trimesh.triangles.to_kwargs(tris), process=True)
     if ext == ".3mf":
@@ -160,10 +191,6 @@ def read_mesh(path):
         loaded = loaded.dump(concatenate=True) if len(loaded.geometry) else trimesh.Trimesh()
     if not isinstance(loaded, trimesh.Trimesh):
         raise _err(path, f"holds no triangle mesh (got {type(loaded).__name__})")
-    v = np.asarray(loaded.vertices, dtype=float)
-    if len(v) and not np.all(np.isfinite(v)):
-        raise _err(path, f"{int(np.sum(~np.isfinite(v).all(axis=1)))} vertices have non-finite coordinates (NaN or "
-                         "infinity)")
     return loaded
 
 

@@ -190,11 +190,42 @@ def _write_model(path, objects, unit, materials, accent_rgb) -> None:
             item.SetUUID(str(uuid.uuid5(_NAMESPACE, f"item/{k}/{name}")))
         writer = model.QueryWriter("3mf")
         path.parent.mkdir(parents=True, exist_ok=True)
-        writer.WriteToFile(str(path))
+        _write_through_python(L, w, writer, path)
     except ExportError:
         raise
     except Exception as e:  # lib3mf raises ELib3MFException; OSError from mkdir
         raise ExportError(f"{path}: could not write 3MF: {e}") from e
+
+
+def _write_through_python(L, w, writer, path: Path) -> None:
+    """The 3MF stream written by a Python file object. lib3mf's own file writer, on a full disk, leaves a C++
+    exception that escapes later from a destructor ("terminate called", SIGABRT); through callbacks lib3mf never
+    sees the failure: the first OSError is kept, later chunks are dropped, and the error is raised here."""
+    failed = []
+    with open(path, "wb") as f:
+        def write(data, size, _user):
+            if not failed:
+                try:
+                    f.write(ctypes.string_at(data, size))
+                except OSError as e:
+                    failed.append(e)
+
+        def seek(position, _user):
+            if not failed:
+                try:
+                    f.seek(position)
+                except OSError as e:
+                    failed.append(e)
+
+        write_cb, seek_cb = L.WriteCallback(write), L.SeekCallback(seek)  # kept alive until the call returns
+        w.checkError(writer, w.lib.lib3mf_writer_writetocallback(writer._handle, write_cb, seek_cb, None))
+    if failed:
+        try:
+            path.unlink()  # a partial 3MF is a corrupt one
+        except OSError:
+            pass
+        e = failed[0]
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from e
 
 
 def _get_geometry(L, w, mesh_obj):

@@ -32,13 +32,24 @@ def load_json(path):
     except UnicodeDecodeError as e:
         raise fail(path, "", f"not UTF-8 text (byte {e.start}); expected a JSON file") from None
     try:
-        return json.loads(text)
+        return json.loads(text, parse_int=_small_int)  # NaN and Infinity reach the Volume, which names the index
     except json.JSONDecodeError as e:
         ends_early = e.pos >= len(text.rstrip()) or e.msg.startswith("Unterminated string")
         what = "truncated" if ends_early else "invalid"
         raise fail(path, "", f"{what} JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
     except RecursionError:
         raise fail(path, "", "invalid JSON: nested too deeply") from None
+    except ValueError as e:  # from the number hooks
+        raise fail(path, "", f"invalid JSON: {e}") from None
+
+
+def _small_int(text):
+    """An integer of at most 30 digits: longer ones are no count or index of a model (and Python refuses to
+    convert more than 4300 digits with a bare ValueError)."""
+    digits = len(text.lstrip("-"))
+    if digits > 30:
+        raise ValueError(f"an integer of {digits} digits ({text[:12]}...), expected at most 30")
+    return int(text)
 
 
 def _array(path, field, value, ndim, last=None):

@@ -1,7 +1,6 @@
 """Measures of a Volume: its volume (integral of |det J|), its true bounding box, its control-net box."""
 
 import numpy as np
-from scipy.optimize import minimize
 
 from .knots import breaks as _breaks
 
@@ -80,6 +79,8 @@ def bbox(vol, per_span=12, polish=3):
     every sample (then it is still within one sample spacing's worth of curvature); always inside
     control_net_bbox.
     """
+    from scipy.optimize import minimize  # a second to import: loaded when a model is measured, not on every start
+
     dom = vol.domain_array
     all_uvw, all_pts, all_axis = [], [], []
     for axis in range(3):
