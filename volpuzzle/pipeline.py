@@ -175,7 +175,9 @@ def prepare(spec, timer=None, progress=None):
     _check_grid_vs_tolerance(spec, tiling, fmap)
     plan = None
     with timer("joint", progress):
-        joints = plan_joints(tiling, fmap, spec.joints)
+        # In mesh mode the joints and their plan of splits go on the contacts of the final pieces (meshcut), known
+        # only after composing.
+        joints = plan_joints(tiling, fmap, spec.joints) if model.mesh is None else []
         if joints:
             from .assembly import plan_assembly, reorient_joints, select_joints
 
@@ -271,7 +273,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         return pieces, labels, engraved, checks
 
     if stages["model"].mesh is not None:
-        pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
+        from .meshcut import compose_in_mesh
+
+        pieces, joints, stages["plan"], mesh_report = compose_in_mesh(stages, spec.joints, tolerance, jobs, timer,
+                                                                      progress)
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
@@ -338,55 +343,6 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
-
-
-def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
-    """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints kept inside
-    the mesh, then pins and holes. -> (pieces, kept joints, report dict)"""
-    from .compose import Piece, compose
-    from .geometry import boolean, from_trimesh, to_trimesh
-    from .joint import hole_solid, piece_id, pieces_joints, pin_solid
-    from .meshcut import intersect_pieces, keep_joints_inside, merge_fragments
-
-    tiling = stages["tiling"]
-    with timer("compose", progress):
-        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
-        solid = from_trimesh(stages["model"].mesh, "mesh model")
-        cage_pieces = {p.id: from_trimesh(p.mesh, p.id) for p in bodies}
-        cut = intersect_pieces(cage_pieces, solid)
-        cut, merges = merge_fragments(cut)
-    cells = {p.id: p.cell for p in bodies}
-    present = set(cut)
-    joints = [j for j in joints if piece_id(j.pin_cell) in present and piece_id(j.hole_cell) in present]
-    with timer("joint", progress):
-        # Each joint may only move where the mesh and its own two cage cells hold it with a wall, so a moved pin
-        # never reaches into a third piece.
-        kept, moved = [], []
-        for j in joints:
-            a, b = piece_id(j.pin_cell), piece_id(j.hole_cell)
-            region = boolean(boolean(cage_pieces[a], cage_pieces[b], "union", f"{a}+{b}"), solid, "intersection",
-                             f"{a}+{b}")
-            k, records = keep_joints_inside([j], region)
-            kept += k
-            moved += records
-        joints = kept
-    pieces = []
-    with timer("compose", progress):
-        for pid in sorted(cut, key=lambda k: cells[k]):
-            body = cut[pid]
-            body_volume = float(body.volume())
-            for j, role in pieces_joints(joints, cells[pid]):
-                if role == "pin":
-                    body = boolean(body, pin_solid(j), "union", pid)
-                else:
-                    body = boolean(body, hole_solid(j, cells[pid]), "difference", pid)
-            mesh = to_trimesh(body)
-            pieces.append(Piece(pid, cells[pid], mesh, float(mesh.volume), body_volume, int(len(mesh.faces))))
-    dropped = sorted(set(cells) - present)
-    report = {"cells_without_piece": dropped, "merged": merges, "joints_moved_or_dropped": moved,
-              "joints_moved": sum(1 for r in moved if r.get("action") == "moved"),
-              "joints_dropped": sum(1 for r in moved if r.get("action") == "dropped")}
-    return pieces, joints, report
 
 
 def _assembly(plan, pieces, joints, timer, progress):
