@@ -17,7 +17,7 @@ import trimesh
 from .errors import ModelError
 from .spline.volume import Volume
 
-__all__ = ["make_cage", "check_inside", "cage_boundary", "PERIODIC_AXES"]
+__all__ = ["make_cage", "check_inside", "cage_boundary", "mesh_mass", "PERIODIC_AXES"]
 
 PERIODIC_AXES = {"box": [], "cylinder": [1], "sphere": [2]}
 _S = np.sqrt(0.5)
@@ -285,3 +285,56 @@ def check_inside(mesh, cage, tol=1e-6):
         f"model.cage: the mesh is not inside the cage: it reaches {float(dist[worst]):.3g} mm outside, at "
         f"({', '.join(f'{x:.4g}' for x in pts[worst])}) mm ({out.volume():.4g} mm^3 of it outside); "
         "enlarge the cage or its padding, or shrink the mesh (model.size)")
+
+
+def _inside(mesh, pts, bins=128, chunk=4096):
+    """Bool (n,) for points (n, 3) inside a closed mesh: the parity of the mesh's crossings with a ray along +z from
+    each point. Triangles are binned on an xy grid so that each point meets only its bin's triangles (no rtree)."""
+    tri = np.asarray(mesh.triangles, float)
+    pts = np.asarray(pts, float)
+    lo = np.minimum(tri[:, :, :2].min(axis=(0, 1)), pts[:, :2].min(axis=0))
+    size = float(np.max(np.maximum(tri[:, :, :2].max(axis=(0, 1)), pts[:, :2].max(axis=0)) - lo)) or 1.0
+    # rays off the grid of nice numbers, so that none runs exactly along an edge of a symmetric mesh
+    pts = pts + np.array([0.31830989, 0.23570226, 0.0]) * 1e-7 * size
+    h = size / bins
+    tlo = np.floor((tri[:, :, :2].min(axis=1) - lo) / h).astype(np.int64)
+    thi = np.floor((tri[:, :, :2].max(axis=1) - lo) / h).astype(np.int64)
+    nx, ny = thi[:, 0] - tlo[:, 0] + 1, thi[:, 1] - tlo[:, 1] + 1
+    count = nx * ny
+    tid = np.repeat(np.arange(len(tri)), count)
+    off = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    key = (tlo[tid, 0] + off % nx[tid]) * (bins + 2) + tlo[tid, 1] + off // nx[tid]
+    order = np.argsort(key, kind="stable")
+    key, tid = key[order], tid[order]
+    out = np.zeros(len(pts), bool)
+    for s in range(0, len(pts), chunk):
+        p = pts[s:s + chunk]
+        pb = np.floor((p[:, :2] - lo) / h).astype(np.int64)
+        pk = pb[:, 0] * (bins + 2) + pb[:, 1]
+        first, last = np.searchsorted(key, pk, "left"), np.searchsorted(key, pk, "right")
+        cnt = last - first
+        pid = np.repeat(np.arange(len(p)), cnt)
+        t = tid[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+        a, b, c, q = tri[t, 0], tri[t, 1], tri[t, 2], p[pid]
+        v0, v1, v2 = b - a, c - a, q - a
+        den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+            v = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+        hit = (den != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+        hit &= a[:, 2] + u * v0[:, 2] + v * v1[:, 2] > q[:, 2]
+        out[s:s + chunk] = np.bincount(pid[hit], minlength=len(p)) % 2 == 1
+    return out
+
+
+def mesh_mass(fmap, mesh, n=32):
+    """How the mesh's volume spreads over the parameters of the piece map (the cage, warped when randomized), for
+    balanced splits: (n, n, n) fractions of the mesh volume in the n^3 equal boxes of the domain. fmap: mapping.Map;
+    each box is sampled at its centre mapped through it, weighted by |det J| and by whether it lies inside the mesh."""
+    lo, hi = np.asarray(fmap.domain, float).T
+    t = (np.arange(n) + 0.5) / n
+    uvw = lo + np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)
+    xyz, jac = fmap.evaluate_with_jacobian(uvw)
+    weight = np.abs(np.linalg.det(jac)) * _inside(mesh, xyz)
+    total = float(weight.sum())
+    return weight.reshape(n, n, n) / (total if total > 0 else 1.0)

@@ -158,8 +158,6 @@ def prepare(spec, timer=None, progress=None):
     with timer("verify", progress):
         model_check = verify_model(vol)
     seams, all_seams = _seams_for(spec, vol)
-    with timer("tile", progress):
-        tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams)
     rand = spec.randomize
     warp, rand_report = None, {"seed": None, "amplitude": 0.0, "jacobian_min_coefficient": None, "bijective": True}
     if rand is not None and rand.amplitude > 0:
@@ -172,6 +170,14 @@ def prepare(spec, timer=None, progress=None):
         rand_report = {"seed": rand.seed, "amplitude": rand.amplitude, "control_points": rand.control_points, **cert}
     orientation = -1 if model_check["handedness"] == "left" else 1
     fmap = Map(vol, warp, orientation)
+    with timer("tile", progress):
+        mass = None
+        if model.mesh is not None and "balanced" in spec.splits:
+            from .cage import mesh_mass
+
+            # through the warp too: the cells are cut from the randomized cage
+            mass = mesh_mass(fmap, model.mesh)
+        tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
     _check_grid_vs_tolerance(spec, tiling, fmap)
     plan = None
     with timer("joint", progress):
