@@ -730,7 +730,7 @@ def plan_splits(meshes, found, cells, fine=1.0, max_sweeps=12):
                     continue
                 d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws)))
                 low = min(float((n @ d).min()) for n in ns)
-                if low <= -1e-3:
+                if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
                     continue
                 # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
                 means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws)]
