@@ -513,7 +513,7 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
         rec = {"pieces": [c.a, c.b], "area_mm2": round(c.area, 3)}
         patch = _Patch(c, rng)
         rec["widest_mm"] = round(patch.widest, 3)
-        d = dir_of.get((c.a, c.b))
+        d = d_plan = dir_of.get((c.a, c.b))
         if d is None or not np.any(d):
             d = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
         d = np.asarray(d, float) / np.linalg.norm(d)
@@ -542,6 +542,20 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
                 continue
             option, why = got, None
             break
+        if option is None and not room and d_plan is not None:
+            # the split's slide stands too far off this contact: a pin along the contact's own normal still holds
+            # the piece; the disassembly replay then looks for another way apart (and says when there is none)
+            d = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
+            for pin_a in roles:
+                pin, hole = (c.a, c.b) if pin_a else (c.b, c.a)
+                got, _ = _try(patch, c, crops, size, d, pin_a)
+                if got is None or pins[pin] >= MAX_PINS or holes[hole] >= MAX_PINS or any(
+                        _seg_distance(*got.segment(), *o.segment()) < got.reach + o.reach + max(got.wall, o.wall)
+                        for o in placed):
+                    continue
+                option, why, room = got, None, True
+                rec["off_plan"] = True
+                break
         rec.update(room=room, pinned=option is not None, reason=why)
         if option is not None:
             pins[option.pin] += 1
