@@ -318,11 +318,11 @@ def _inside(mesh, pts, bins=128, chunk=4096):
         a, b, c, q = tri[t, 0], tri[t, 1], tri[t, 2], p[pid]
         v0, v1, v2 = b - a, c - a, q - a
         den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):  # edge-on triangles (den 0) never count
             u = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
             v = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
-        hit = (den != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
-        hit &= a[:, 2] + u * v0[:, 2] + v * v1[:, 2] > q[:, 2]
+            hit = (den != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+            hit &= a[:, 2] + u * v0[:, 2] + v * v1[:, 2] > q[:, 2]
         out[s:s + chunk] = np.bincount(pid[hit], minlength=len(p)) % 2 == 1
     return out
 

@@ -1,0 +1,104 @@
+"""Mesh mode joints: a torus-knot tube (genus 1, its fragments in every cell) in box cages builds into pieces that
+are all jointed, in one joint graph, with no two joints meeting; balanced splits even out the pieces."""
+
+import networkx as nx
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from volpuzzle.pipeline import build
+from volpuzzle.spec import load_spec
+from volpuzzle.errors import SpecError
+
+
+def knot_tube(p=2, q=3, scale=20.0, tube=5.0, n=240, k=16):
+    """A closed (p, q) torus-knot tube, consistently wound, one body."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    r = np.cos(q * t) + 2.0
+    c = scale * np.stack([r * np.cos(p * t), r * np.sin(p * t), -np.sin(q * t)], 1)
+    tan = np.roll(c, -1, 0) - np.roll(c, 1, 0)
+    tan /= np.linalg.norm(tan, axis=1)[:, None]
+    n1 = np.cross(tan, [0.0, 0.0, 1.0])
+    n1 /= np.linalg.norm(n1, axis=1)[:, None]
+    n2 = np.cross(tan, n1)
+    a = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    v = (c[:, None] + tube * (np.cos(a)[None, :, None] * n1[:, None] + np.sin(a)[None, :, None] * n2[:, None]))
+    i, j = np.arange(n)[:, None], np.arange(k)[None]
+    v00, v10 = i * k + j, ((i + 1) % n) * k + j
+    v01, v11 = i * k + (j + 1) % k, ((i + 1) % n) * k + (j + 1) % k
+    f = np.concatenate([np.stack([v00, v10, v11], -1).reshape(-1, 3), np.stack([v00, v11, v01], -1).reshape(-1, 3)])
+    m = trimesh.Trimesh(v.reshape(-1, 3), f, process=True)
+    if m.volume < 0:
+        m.invert()
+    return m
+
+
+def seg_distance(p0, p1, q0, q1, n=64):
+    s = np.linspace(0, 1, n)[:, None]
+    a, b = p0 + s * (p1 - p0), q0 + s * (q1 - q0)
+    return float(np.min(np.linalg.norm(a[:, None] - b[None], axis=2)))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("grid", [[2, 2, 2]])
+def test_a_knot_in_a_box_cage_holds_together(tmp_path, grid):
+    knot_tube().export(tmp_path / "knot.stl")
+    spec = {"name": "knot", "model": {"mesh": "knot.stl", "cage": {"type": "box", "padding": 2}},
+            "grid": grid, "output": {"tolerance": 0.2, "labels": False}}
+    (tmp_path / "knot.yaml").write_text(yaml.safe_dump(spec))
+    report = build(tmp_path / "knot.yaml", output_dir=tmp_path / "out", force=True, jobs=1)
+    ids = [p["id"] for p in report["pieces"]]
+    g = nx.Graph()
+    g.add_nodes_from(ids)
+    g.add_edges_from((j["pin_piece"], j["hole_piece"]) for j in report["joints"])
+    assert min(dict(g.degree).values()) >= 1 and nx.is_connected(g)
+    assert not report["assembly"]["welded"]
+    assert report["checks"]["passed"]
+    # no two joints within their holes' reach and a wall of each other
+    js = report["joints"]
+    for x in range(len(js)):
+        for y in range(x + 1, len(js)):
+            a, b = js[x], js[y]
+            pa, da = np.array(a["center_mm"]), np.array(a["direction"])
+            pb, db = np.array(b["center_mm"]), np.array(b["direction"])
+            d = seg_distance(pa - da, pa + da * a["length_mm"], pb - db, pb + db * b["length_mm"])
+            assert d >= a["radius_mm"] + a["clearance_mm"] + b["radius_mm"] + b["clearance_mm"]
+    contacts = report["mesh"]["contacts"]
+    assert all(c["pinned"] or c["reason"] for c in contacts)
+    assert sum(c["pinned"] for c in contacts) >= 0.75 * sum(c["room"] for c in contacts)
+
+
+def test_balanced_splits_are_the_default_for_meshes_only(tmp_path):
+    knot_tube().export(tmp_path / "knot.stl")
+    spec = {"name": "knot", "model": {"mesh": "knot.stl", "cage": {"type": "box"}}, "grid": [2, 2, 1]}
+    (tmp_path / "a.yaml").write_text(yaml.safe_dump(spec))
+    assert load_spec(tmp_path / "a.yaml").splits == ("balanced",) * 3
+    spec = {"name": "t", "model": {"builtin": {"type": "torus"}}, "grid": [2, 2, 2], "splits": {"u": "balanced"}}
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(SpecError, match="splits.u: balanced splits follow a mesh's volume"):
+        load_spec(tmp_path / "b.yaml")
+
+
+def test_balanced_splits_even_out_the_mesh(tmp_path):
+    from volpuzzle.cage import make_cage, mesh_mass
+    from volpuzzle.mapping import Map
+    from volpuzzle.spec import CageSpec
+    from volpuzzle.tile import _cell_masses, tile
+
+    mesh = trimesh.creation.cone(20.0, 60.0, sections=48)  # most of its volume near the base
+    cage, _ = make_cage(mesh, CageSpec(type="box", padding=1.0))
+    mass = mesh_mass(Map(cage), mesh)
+    assert mass.sum() == pytest.approx(1.0)
+    n = mass.shape[0]
+    prefix = np.zeros((n + 1,) * 3)
+    prefix[1:, 1:, 1:] = mass.cumsum(0).cumsum(1).cumsum(2)
+
+    def ratio(t):
+        pos = [np.asarray(b) * n for b in t.breaks]
+        c = _cell_masses(prefix, pos)
+        return c.max() / c.min()
+
+    even = tile(cage, (2, 2, 2), ("balanced",) * 3, mass=mass)
+    plain = tile(cage, (2, 2, 2), ("uniform",) * 3)
+    assert ratio(even) < 0.8 * ratio(plain)
