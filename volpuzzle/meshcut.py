@@ -395,16 +395,20 @@ class _Patch:
         n = self.normals[near].sum(axis=0)
         return n / max(float(np.linalg.norm(n)), 1e-300)
 
-    def spots(self, need, count=6):
+    def spots(self, need, count=10):
         """Up to `count` centres (3,) with at least `need` mm to the border, widest first, spread apart."""
         order = np.argsort(-self.clear)
+        order = order[self.clear[order] >= need]
+        pts, clear = self.points[order], self.clear[order]
         out = []
-        for i in order:
-            if self.clear[i] < need or len(out) >= count:
+        alive = np.ones(len(order), bool)
+        while len(out) < count:
+            left = np.flatnonzero(alive)
+            if not len(left):
                 break
-            p = self.points[i]
-            if all(np.linalg.norm(p - q) > 0.5 * self.clear[i] for q, _ in out):
-                out.append((p, float(self.clear[i])))
+            i = left[0]
+            out.append((pts[i], float(clear[i])))
+            alive &= np.linalg.norm(pts - pts[i], axis=1) > 0.5 * clear
         return out
 
 
@@ -427,8 +431,30 @@ def _sizes(size, room):
     return out
 
 
-def _try(patch, contact, crops, size, direction, pin_a, max_tests=48):
-    """The best fitting _Option on one contact with the pin in piece a (pin_a) or in b, or (None, why)."""
+def _fit(patch, crops, contact, size, p, d, r, L, pin_a):
+    """Whether a pin of radius r and length L at p along d (out of the pin piece) fits its two pieces with its
+    clearance and wall -> (base depth, None) or (None, why)."""
+    R, w = _reach(size, r), _wall(r)
+    rel = patch.points - p
+    t = rel @ d
+    radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
+    near = t[radial <= R + w]
+    lo, hi = (float(near.min()), float(near.max())) if len(near) else (0.0, 0.0)
+    base = round(max(0.5, 1.5 * max(-lo, 0.0) + 0.3), 4)
+    front = L + size.axial_clearance
+    a_solid, b_solid = (crops[contact.a], crops[contact.b]) if pin_a else (crops[contact.b], crops[contact.a])
+    if _outside(_cylinder(p, d, R + w, -(base + w), front + w), [a_solid, b_solid]):
+        return None, "the pin's hole with its wall would break out of the two pieces"
+    if _outside(_cylinder(p, d, R + w, max(hi, 0.0) + 1e-3, front + w), [b_solid]):
+        return None, f"the hole piece is too thin for a {L:g} mm pin with its wall"
+    if _outside(_cylinder(p, d, r + w, -(base + w), min(lo, 0.0) - 1e-3), [a_solid]):
+        return None, "the pin piece is too thin for the pin's base"
+    return base, None
+
+
+def _try(patch, contact, crops, size, direction, pin_a, placed=(), memo=None, max_tests=48):
+    """The best fitting _Option on one contact with the pin in piece a (pin_a) or in b, clear of the joints `placed`
+    (_Option list) by their reach and a wall, or (None, why)."""
     d = np.asarray(direction, float)
     if not pin_a:
         d = -d
@@ -449,30 +475,31 @@ def _try(patch, contact, crops, size, direction, pin_a, max_tests=48):
     if not good:
         return None, (f"the sliding direction of the split between {contact.a} and {contact.b} stands more than "
                       f"{MAX_TILT_DEG:g} deg off the contact wherever a pin has room")
-    trials = [(p, r, L) for r, L in _sizes(size, good[0][1]) for p, room in good[:3]
+    trials = [(p, r, L) for r, L in _sizes(size, good[0][1]) for p, room in good[:5]
               if _reach(size, r) + _wall(r) <= room + 1e-9]
-    pts = patch.points
     for p, r, L in trials:
         if tests >= max_tests:
             break
-        tests += 1
         R, w = _reach(size, r), _wall(r)
-        rel = pts - p
-        t = rel @ d
-        radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
-        near = t[radial <= R + w]
-        lo, hi = (float(near.min()), float(near.max())) if len(near) else (0.0, 0.0)
-        base = round(max(0.5, 1.5 * max(-lo, 0.0) + 0.3), 4)
-        front = L + size.axial_clearance
-        a_solid, b_solid = (crops[contact.a], crops[contact.b]) if pin_a else (crops[contact.b], crops[contact.a])
-        if _outside(_cylinder(p, d, R + w, -(base + w), front + w), [a_solid, b_solid]):
-            why = "the pin's hole with its wall would break out of the two pieces"
+        seg = (p - (0.5 + w) * d, p + (L + size.axial_clearance + w) * d)  # the base is at least 0.5 mm deep
+        clash = next((o for o in placed if _seg_distance(*seg, *o.segment()) < R + o.reach + max(w, o.wall)), None)
+        if clash is not None:
+            why = why or f"every spot with room would meet the joint between {clash.pin} and {clash.hole}"
             continue
-        if _outside(_cylinder(p, d, R + w, max(hi, 0.0) + 1e-3, front + w), [b_solid]):
-            why = f"the hole piece is too thin for a {L:g} mm pin with its wall"
+        tests += 1
+        key = (pin_a, tuple(np.round(p, 6)), r, L, tuple(np.round(d, 9)))
+        if memo is None or key not in memo:
+            result = _fit(patch, crops, contact, size, p, d, r, L, pin_a)
+            if memo is not None:
+                memo[key] = result
+        else:
+            result = memo[key]
+        base, reason = result
+        if reason is not None:
+            why = reason
             continue
-        if _outside(_cylinder(p, d, r + w, -(base + w), min(lo, 0.0) - 1e-3), [a_solid]):
-            why = "the pin piece is too thin for the pin's base"
+        got = _Option(pin, hole, p, d, r, L + size.axial_clearance, base, R, w)
+        if any(_seg_distance(*got.segment(), *o.segment()) < R + o.reach + max(w, o.wall) for o in placed):
             continue
         return _Option(pin, hole, p, d, r, L, base, R, w), None
     return None, why or "no spot holds the pin with its wall"
@@ -503,66 +530,90 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
     for c in found:
         g.add_edge(c.a, c.b, weight=c.area)
     tree = {frozenset(e) for e in nx.maximum_spanning_edges(g, data=False)} if found else set()
-    order = sorted(found, key=lambda c: (frozenset((c.a, c.b)) not in tree, -c.area, c.a, c.b))
     rng = np.random.default_rng(seed)
-    pins = {k: 0 for k in pieces}
-    holes = {k: 0 for k in pieces}
-    placed, records = [], []
     depth = size.length + size.axial_clearance + 2 * _wall(size.radius) + 2.0 * _reach(size, size.radius) + 1.0
-    for c in order:
-        rec = {"pieces": [c.a, c.b], "area_mm2": round(c.area, 3)}
+    prepared = []  # per contact: patch, crops, planned direction (or None), direction to try first
+    for c in found:
         patch = _Patch(c, rng)
-        rec["widest_mm"] = round(patch.widest, 3)
-        d = d_plan = dir_of.get((c.a, c.b))
+        d_plan = dir_of.get((c.a, c.b))
+        d = d_plan
         if d is None or not np.any(d):
-            d = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
-        d = np.asarray(d, float) / np.linalg.norm(d)
+            d_plan, d = None, patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
         lo = c.triangles.reshape(-1, 3).min(axis=0) - depth
         hi = c.triangles.reshape(-1, 3).max(axis=0) + depth
         crops = {k: _crop(pieces[k], lo, hi) for k in (c.a, c.b)}
-        # the pin goes into the piece with fewer pins (then fewer holes), the other way if that one is full
-        roles = sorted((True, False), key=lambda pa: (pins[c.a if pa else c.b] + holes[c.b if pa else c.a],
-                                                      pins[c.a if pa else c.b], not pa))
-        option, why, room = None, None, False
-        for pin_a in roles:
-            pin, hole = (c.a, c.b) if pin_a else (c.b, c.a)
-            got, reason = _try(patch, c, crops, size, d, pin_a)
-            if got is None:
-                why = why or reason
-                continue
-            room = True
-            if pins[pin] >= MAX_PINS or holes[hole] >= MAX_PINS:
-                why = f"{pin if pins[pin] >= MAX_PINS else hole} already has {MAX_PINS} " + (
-                    "pins" if pins[pin] >= MAX_PINS else "holes")
-                continue
-            clash = next((o for o in placed if _seg_distance(*got.segment(), *o.segment())
-                          < got.reach + o.reach + max(got.wall, o.wall)), None)
-            if clash is not None:
-                why = f"it would meet the joint between {clash.pin} and {clash.hole}"
-                continue
-            option, why = got, None
+        prepared.append((patch, crops, d_plan, np.asarray(d, float) / np.linalg.norm(d), {}))
+
+    def run(first):
+        """Place the contacts, those numbered in `first` first, then the spanning tree's, then by area."""
+        order = sorted(range(len(found)), key=lambda i: (i not in first, frozenset((found[i].a, found[i].b)) not in
+                                                           tree, -found[i].area, found[i].a, found[i].b))
+        pins = {k: 0 for k in pieces}
+        holes = {k: 0 for k in pieces}
+        placed, records = [], {}
+        for i in order:
+            c = found[i]
+            patch, crops, d_plan, d, memo = prepared[i]
+            rec = {"pieces": [c.a, c.b], "area_mm2": round(c.area, 3), "widest_mm": round(patch.widest, 3)}
+            # the pin goes into the piece with fewer pins (then fewer holes), the other way if that one is full
+            roles = sorted((True, False), key=lambda pa: (pins[c.a if pa else c.b] + holes[c.b if pa else c.a],
+                                                          pins[c.a if pa else c.b], not pa))
+
+            def attempt(d):
+                """The first role that is not full and whose pin fits clear of the joints placed so far."""
+                why = None
+                for pin_a in roles:
+                    pin, hole = (c.a, c.b) if pin_a else (c.b, c.a)
+                    if pins[pin] >= MAX_PINS or holes[hole] >= MAX_PINS:
+                        full = pin if pins[pin] >= MAX_PINS else hole
+                        why = why or f"{full} already has {MAX_PINS} {'pins' if full == pin else 'holes'}"
+                        continue
+                    got, reason = _try(patch, c, crops, size, d, pin_a, placed, memo)
+                    if got is not None:
+                        return got, None
+                    why = why or reason
+                return None, why
+
+            option, why = attempt(d)
+            if option is None and d_plan is not None and why and "deg off" in why:
+                # the split's slide stands too far off this contact: a pin along the contact's own normal still
+                # holds the piece; the disassembly replay then looks for another way apart (and says when none)
+                option, _ = attempt(patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest))
+                if option is not None:
+                    why = None
+                    rec["off_plan"] = True
+            # room: a pin fits the contact at all, whatever the other joints and the counts say
+            room = option is not None or _try(patch, c, crops, size, d, roles[0], (), memo)[0] is not None
+            rec.update(room=room, pinned=option is not None, reason=why)
+            if option is not None:
+                pins[option.pin] += 1
+                holes[option.hole] += 1
+                placed.append(option)
+                rec.update(radius_mm=option.radius, length_mm=option.length)
+            records[i] = rec
+        return placed, [records[i] for i in range(len(found))]
+
+    def parts(placed):
+        h = nx.Graph()
+        h.add_nodes_from(pieces)
+        h.add_edges_from((o.pin, o.hole) for o in placed)
+        return {k: n for n, comp in enumerate(nx.connected_components(h)) for k in comp}
+
+    first = set()
+    placed, records = run(first)
+    # A joint placed early can take the only room a later bridge had: put the unpinned contacts that would join
+    # two parts of the joint graph first and try again, keeping the best outcome.
+    for _ in range(3):
+        part = parts(placed)
+        if len(set(part.values())) <= 1:
             break
-        if option is None and not room and d_plan is not None:
-            # the split's slide stands too far off this contact: a pin along the contact's own normal still holds
-            # the piece; the disassembly replay then looks for another way apart (and says when there is none)
-            d = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
-            for pin_a in roles:
-                pin, hole = (c.a, c.b) if pin_a else (c.b, c.a)
-                got, _ = _try(patch, c, crops, size, d, pin_a)
-                if got is None or pins[pin] >= MAX_PINS or holes[hole] >= MAX_PINS or any(
-                        _seg_distance(*got.segment(), *o.segment()) < got.reach + o.reach + max(got.wall, o.wall)
-                        for o in placed):
-                    continue
-                option, why, room = got, None, True
-                rec["off_plan"] = True
-                break
-        rec.update(room=room, pinned=option is not None, reason=why)
-        if option is not None:
-            pins[option.pin] += 1
-            holes[option.hole] += 1
-            placed.append(option)
-            rec.update(radius_mm=option.radius, length_mm=option.length)
-        records.append(rec)
+        bridges = {i for i, c in enumerate(found) if part[c.a] != part[c.b] and records[i]["room"]}
+        if not bridges - first:
+            break
+        first |= bridges
+        again, again_records = run(first)
+        if (len(set(parts(again).values())), -len(again)) < (len(set(part.values())), -len(placed)):
+            placed, records = again, again_records
     joints = []
     nan = np.full(3, np.nan)
     nan.setflags(write=False)
@@ -658,12 +709,12 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
 
 
 def pin_size(joint_spec, mesh):
-    """The wanted PinSize: the spec's radius and length, else about 2.5% of the model's largest side (at least
-    1.5 mm) and 2.5 radii long."""
+    """The wanted PinSize: the spec's radius and length, else about 2.5% of the model's largest side (1.2 to 4
+    mm) and 2.5 radii long (at least 3 mm)."""
     from .joint import DEFAULT_AXIAL_CLEARANCE, DEFAULT_CLEARANCE
 
     side = float(np.max(mesh.extents))
-    r = joint_spec.radius if joint_spec.radius is not None else float(np.clip(round(0.025 * side, 1), 1.5, 4.0))
+    r = joint_spec.radius if joint_spec.radius is not None else float(np.clip(round(0.025 * side, 1), 1.2, 4.0))
     length = joint_spec.length if joint_spec.length is not None else float(np.clip(round(2.5 * r, 1), 3.0, 10.0))
     c = joint_spec.clearance if joint_spec.clearance is not None else DEFAULT_CLEARANCE
     ac = joint_spec.axial_clearance if joint_spec.axial_clearance is not None else DEFAULT_AXIAL_CLEARANCE
