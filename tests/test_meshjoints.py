@@ -102,3 +102,74 @@ def test_balanced_splits_even_out_the_mesh(tmp_path):
     even = tile(cage, (2, 2, 2), ("balanced",) * 3, mass=mass)
     plain = tile(cage, (2, 2, 2), ("uniform",) * 3)
     assert ratio(even) < 0.8 * ratio(plain)
+
+
+def _box(lo, hi):
+    import manifold3d
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return manifold3d.Manifold.cube(list(hi - lo)).translate(list(lo))
+
+
+def test_a_contact_with_room_gets_one_pin_in_its_middle_along_the_slide():
+    from volpuzzle.meshcut import PinSize, joint_graph_problem, place_joints
+
+    pieces = {"p0-0-0": _box([0, 0, 0], [20, 20, 20]), "p1-0-0": _box([20, 0, 0], [40, 20, 20])}
+    cells = {"p0-0-0": (0, 0, 0), "p1-0-0": (1, 0, 0)}
+    joints, records, plan = place_joints(pieces, cells, PinSize(2.0, 5.0, 0.15, 0.3))
+    assert len(joints) == 1 and records[0]["pinned"] and records[0]["room"]
+    j = joints[0]
+    assert np.allclose(np.abs(j.direction), [1, 0, 0]) and j.center[0] == pytest.approx(20.0)
+    assert np.hypot(j.center[1] - 10, j.center[2] - 10) < 2.5  # the middle of the face, farthest from its edge
+    assert (j.radius, j.length) == (2.0, 5.0)
+    assert joint_graph_problem(sorted(pieces), joints, records) is None
+    assert [len(s.moving) for s in plan.steps] == [1]
+
+
+def test_a_small_contact_takes_a_smaller_pin_down_to_the_minimum_then_none():
+    from volpuzzle.meshcut import PinSize, joint_graph_problem, place_joints
+
+    cells = {"p0-0-0": (0, 0, 0), "p1-0-0": (1, 0, 0)}
+    small = {"p0-0-0": _box([0, 0, 0], [20, 5, 5]), "p1-0-0": _box([20, 0, 0], [40, 5, 5])}
+    joints, records, _ = place_joints(small, cells, PinSize(2.0, 5.0, 0.15, 0.3))
+    assert len(joints) == 1 and 1.0 <= joints[0].radius < 2.0
+    tiny = {"p0-0-0": _box([0, 0, 0], [20, 3, 3]), "p1-0-0": _box([20, 0, 0], [40, 3, 3])}
+    joints, records, _ = place_joints(tiny, cells, PinSize(2.0, 5.0, 0.15, 0.3))
+    assert joints == [] and not records[0]["room"] and "no room" in records[0]["reason"]
+    problem = joint_graph_problem(sorted(tiny), joints, records)
+    assert problem.startswith("p") and "has no joint" in problem and "no room" in problem
+
+
+def test_a_pin_never_reaches_into_a_third_piece():
+    from volpuzzle.meshcut import PinSize, place_joints
+
+    # p1 is a 4 mm slab between p0 and p2: a 5 mm pin from p0 would cross it into p2, so it shrinks to fit
+    pieces = {"p0-0-0": _box([0, 0, 0], [20, 20, 20]), "p1-0-0": _box([20, 0, 0], [24, 20, 20]),
+              "p2-0-0": _box([24, 0, 0], [44, 20, 20])}
+    cells = {k: (i, 0, 0) for i, k in enumerate(sorted(pieces))}
+    joints, records, _ = place_joints(pieces, cells, PinSize(2.0, 5.0, 0.15, 0.3))
+    for j in joints:
+        a, b = j.center - j.base_depth * j.direction, j.center + (j.length + j.axial_clearance) * j.direction
+        xs = sorted([a[0], b[0]])
+        assert xs[0] >= -1e-9 and xs[1] <= 44
+        # the joint stays within its two pieces' slabs
+        lo_cell, hi_cell = sorted((j.pin_cell[0], j.hole_cell[0]))
+        bounds = [0, 20, 24, 44]
+        assert bounds[lo_cell] - 1e-9 <= xs[0] and xs[1] <= bounds[hi_cell + 1] + 1e-9
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cage, grid, periodic", [("cylinder", [2, 4, 1], ["v"]), ("sphere", [1, 3, 4], ["w"])])
+def test_curved_cages_hold_the_bunny_together(tmp_path, cage, grid, periodic):
+    from pathlib import Path
+
+    bunny = Path(__file__).resolve().parent.parent / "specs" / "models" / "cgal_bunny00.ply"
+    spec = {"name": "b", "model": {"mesh": str(bunny), "cage": {"type": cage, "padding": 2}, "size": 80},
+            "grid": grid, "periodic": periodic, "output": {"tolerance": 0.3, "labels": False}}
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump(spec))
+    report = build(tmp_path / "b.yaml", output_dir=tmp_path / "out", force=True, jobs=1)
+    g = nx.Graph()
+    g.add_nodes_from(p["id"] for p in report["pieces"])
+    g.add_edges_from((j["pin_piece"], j["hole_piece"]) for j in report["joints"])
+    assert nx.is_connected(g) and min(dict(g.degree).values()) >= 1
+    assert report["checks"]["passed"] and not report["assembly"]["welded"]

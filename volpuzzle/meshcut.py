@@ -544,8 +544,9 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
         crops = {k: _crop(pieces[k], lo, hi) for k in (c.a, c.b)}
         prepared.append((patch, crops, d_plan, np.asarray(d, float) / np.linalg.norm(d), {}))
 
-    def run(first):
-        """Place the contacts, those numbered in `first` first, then the spanning tree's, then by area."""
+    def run(first, tilt_ok=frozenset()):
+        """Place the contacts, those numbered in `first` first, then the spanning tree's, then by area; those in
+        tilt_ok may take a pin along their own normal when their split slides too far off them."""
         order = sorted(range(len(found)), key=lambda i: (i not in first, frozenset((found[i].a, found[i].b)) not in
                                                            tree, -found[i].area, found[i].a, found[i].b))
         pins = {k: 0 for k in pieces}
@@ -575,15 +576,18 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
                 return None, why
 
             option, why = attempt(d)
-            if option is None and d_plan is not None and why and "deg off" in why:
-                # the split's slide stands too far off this contact: a pin along the contact's own normal still
-                # holds the piece; the disassembly replay then looks for another way apart (and says when none)
+            if option is None and i in tilt_ok and d_plan is not None and why and "deg off" in why:
+                # the split's slide stands too far off this contact, which the joint graph needs: a pin along the
+                # contact's own normal holds the piece; the disassembly replay looks for another way apart
                 option, _ = attempt(patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest))
                 if option is not None:
                     why = None
                     rec["off_plan"] = True
-            # room: a pin fits the contact at all, whatever the other joints and the counts say
+            # room: a pin fits the contact at all, whatever the other joints, the counts and the slide say
             room = option is not None or _try(patch, c, crops, size, d, roles[0], (), memo)[0] is not None
+            if not room and d_plan is not None and why and "deg off" in why:
+                normal = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
+                room = _try(patch, c, crops, size, normal, roles[0], (), memo)[0] is not None
             rec.update(room=room, pinned=option is not None, reason=why)
             if option is not None:
                 pins[option.pin] += 1
@@ -613,6 +617,13 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
         first |= bridges
         again, again_records = run(first)
         if (len(set(parts(again).values())), -len(again)) < (len(set(part.values())), -len(placed)):
+            placed, records = again, again_records
+    part = parts(placed)
+    if len(set(part.values())) > 1:
+        # last resort for the bridges whose split slides too far off them: pins along their own normals
+        bridges = frozenset(i for i, c in enumerate(found) if part[c.a] != part[c.b])
+        again, again_records = run(first | bridges, bridges)
+        if len(set(parts(again).values())) < len(set(part.values())):
             placed, records = again, again_records
     joints = []
     nan = np.full(3, np.nan)
