@@ -66,21 +66,58 @@ def _right_handed(axes):
     return r
 
 
-def _box(mesh, pad, cps):
+def _frame_box(pts, axes, pad):
+    local = pts @ axes.T
+    llo, lhi = local.min(axis=0), local.max(axis=0)
+    return axes, axes.T @ ((llo + lhi) / 2), (lhi - llo) / 2 + pad
+
+
+def _balance(mesh, frame, grid, n=24):
+    """The largest over the smallest cell's share of the mesh when a box in `frame` is cut by balanced splits."""
+    from .tile import _balanced, _cell_masses
+
+    axes, center, half = frame
+    t = (np.arange(n) + 0.5) / n
+    local = (np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * 2 - 1) * half
+    w = _inside(mesh, center + local @ axes).reshape(n, n, n).astype(float)
+    if w.sum() <= 0:
+        return np.inf
+    w /= w.sum()
+    breaks = _balanced(tuple(np.linspace(0.0, 1.0, g + 1) for g in grid), w, [a for a in range(3) if grid[a] > 1],
+                       sweeps=2, steps=16)
+    prefix = np.zeros((n + 1,) * 3)
+    prefix[1:, 1:, 1:] = w.cumsum(0).cumsum(1).cumsum(2)
+    cells = _cell_masses(prefix, [np.asarray(b) * n for b in breaks])
+    return float(cells.max() / max(cells.min(), 1e-9))
+
+
+def _box(mesh, pad, cps, balance_grid=None):
+    """balance_grid: the grid of balanced splits, when they are asked for: the box's frame is then the one (axis-
+    aligned, smallest box, principal axes of inertia) whose pieces come out the most even, not the smallest box
+    (the bunny's smallest box leaves its octants 3.3x apart, its axes of inertia 1.3x)."""
     pts = _hull_points(mesh)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     aabb = (np.eye(3), (lo + hi) / 2, (hi - lo) / 2 + pad)
     best, kind = aabb, "axis-aligned"
+    frames = [(aabb, "axis-aligned")]
     try:
-        obb = mesh.bounding_box_oriented.primitive
-        axes = _right_handed(np.asarray(obb.transform)[:3, :3].T)
-        local = pts @ axes.T
-        llo, lhi = local.min(axis=0), local.max(axis=0)
-        cand = (axes, axes.T @ ((llo + lhi) / 2), (lhi - llo) / 2 + pad)
+        cand = _frame_box(pts, _right_handed(np.asarray(mesh.bounding_box_oriented.primitive.transform)[:3, :3].T),
+                          pad)
+        frames.append((cand, "principal axes"))
         if np.prod(cand[2]) < np.prod(aabb[2]) * (1 - 1e-6):
             best, kind = cand, "principal axes"
     except Exception:  # trimesh's oriented bounds can fail on degenerate hulls; the axis-aligned box stands
         pass
+    if balance_grid is not None and any(g > 1 for g in balance_grid):
+        try:
+            frames.append((_frame_box(pts, _right_handed(np.asarray(mesh.principal_inertia_vectors, float)), pad),
+                           "axes of inertia"))
+        except Exception:  # a degenerate inertia tensor: the other frames stand
+            pass
+        scores = [_balance(mesh, f, balance_grid) for f, _ in frames]
+        k = int(np.argmin(scores))
+        if scores[k] < _balance(mesh, best, balance_grid) * (1 - 1e-6):
+            best, kind = frames[k]
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
     degrees = tuple(1 if cps is None else min(3, k - 1) for k in n)
@@ -160,17 +197,18 @@ def _sphere(mesh, pad):
     return vol, info
 
 
-def make_cage(mesh, cage_spec, scale=1.0):
+def make_cage(mesh, cage_spec, scale=1.0, balance_grid=None):
     """A cage Volume (mm, domain [0, 1]^3 for the built-in types) around `mesh` (mm) -> (Volume, info dict).
 
     cage_spec: spec.CageSpec. scale: mm per unit of a NURBS cage file -- the mesh's whole scale (units and size),
-    so that a cage drawn around the unscaled mesh still fits it. info holds 'type', 'periodic' (axis indices of the
-    closed seams, for the spec's `periodic`) and the cage's measures.
+    so that a cage drawn around the unscaled mesh still fits it. balance_grid: the grid, when its splits are balanced
+    (a box cage then takes the frame that cuts the mesh most evenly). info holds 'type', 'periodic' (axis indices of
+    the closed seams, for the spec's `periodic`) and the cage's measures.
     """
     kind = cage_spec.type
     pad = float(cage_spec.padding or 0.0)
     if kind == "box":
-        vol, info = _box(mesh, pad, cage_spec.control_points)
+        vol, info = _box(mesh, pad, cage_spec.control_points, balance_grid)
     elif kind == "cylinder":
         vol, info = _cylinder(mesh, pad)
     elif kind == "sphere":

@@ -704,7 +704,8 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
             size = pin_size(joint_spec, model.mesh)
             joints, records, plan = place_joints(cut, cells, size)
             problem = joint_graph_problem(sorted(cut), joints, records)
-            if problem and not getattr(joint_spec, "allow_loose", False):
+            # joints.allow: [loose] (the joints branch's key) lets a puzzle in several parts build
+            if problem and "loose" not in tuple(getattr(joint_spec, "allow", ()) or ()):
                 raise GeometryError(problem)
     pieces = []
     with timer("compose", progress):
@@ -729,8 +730,12 @@ def pin_size(joint_spec, mesh):
     length = joint_spec.length if joint_spec.length is not None else float(np.clip(round(2.5 * r, 1), 3.0, 10.0))
     c = joint_spec.clearance if joint_spec.clearance is not None else DEFAULT_CLEARANCE
     ac = joint_spec.axial_clearance if joint_spec.axial_clearance is not None else DEFAULT_AXIAL_CLEARANCE
+    lo_r = getattr(joint_spec, "min_radius", None)  # joints.min_radius / min_length where the spec has them
+    lo_l = getattr(joint_spec, "min_length", None)
+    lo_r = MIN_RADIUS if lo_r is None else float(lo_r)
+    lo_l = MIN_LENGTH if lo_l is None else float(lo_l)
     return PinSize(float(r), float(length), float(c), float(ac), joint_spec.shape or "cylinder",
-                   joint_spec.style or "pin", min(MIN_RADIUS, float(r)), min(MIN_LENGTH, float(length)))
+                   joint_spec.style or "pin", min(lo_r, float(r)), min(lo_l, float(length)))
 
 
 def _contact_normals(c):

@@ -101,7 +101,8 @@ def _load_mesh_model(spec):
         raise SpecError("joints.space: pins built in the domain are not supported with a mesh model "
                         "(got domain, expected physical)", source=spec.source)
     mesh, scale = load_mesh_scaled(ms.mesh, unit_scale=ms.unit_scale, size=ms.size, repair=ms.repair)
-    cage, cage_info = make_cage(mesh, ms.cage, scale=scale)
+    cage, cage_info = make_cage(mesh, ms.cage, scale=scale,
+                                balance_grid=spec.grid if "balanced" in spec.splits else None)
     check_inside(mesh, cage)
     info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
             "cage": {k: v for k, v in cage_info.items() if isinstance(v, (int, float, str, list, tuple))}}
