@@ -747,7 +747,7 @@ def _contact_normals(c):
     return n[keep] / size[keep, None], 0.5 * size[keep]
 
 
-def plan_splits(meshes, found, cells, fine=1.0, max_sweeps=12):
+def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     """The plan of splits on the final pieces' contact graph -> (assembly.AssemblyPlan, {(a, b): unit (3,) along
     which b leaves a}).
 
@@ -820,13 +820,13 @@ def plan_splits(meshes, found, cells, fine=1.0, max_sweeps=12):
         cands.sort(key=lambda c: c[0], reverse=True)
         return [c[1:] for c in cands]
 
-    budget = [max_sweeps * max(1, len(meshes))]
+    # each sweep costs Booleans on the whole pieces: a few per piece in all
+    budget = [2 * len(meshes) + 4]
 
     def slides(moving, fixed, d):
-        # the contacts say nothing of parts that hook round each other away from them (a knot): sweep for real.
-        # Beyond the first pin lengths the sweep samples every few mm; two spacings catch a thin hook one misses.
+        # the contacts say nothing of parts that hook round each other away from them (a knot): sweep for real
         budget[0] -= 1
-        return all(scene.sweep_clear(moving, fixed, d, f, 1e-4)[0] for f in (0.5 * fine, fine))
+        return scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
 
     def split(block, strict=True):
         """[(moving, fixed, d), ...] taking the block apart, or None when strict and no order of splits found
@@ -854,7 +854,7 @@ def plan_splits(meshes, found, cells, fine=1.0, max_sweeps=12):
 
     blocks = split(sorted(meshes))
     if blocks is None:
-        budget[0] = max_sweeps * max(1, len(meshes))
+        budget[0] = len(meshes)
         blocks = split(sorted(meshes), strict=False)
     steps, dir_of = [], {}
     for moving, fixed, d in blocks:
