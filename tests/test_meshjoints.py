@@ -159,12 +159,14 @@ def test_a_pin_never_reaches_into_a_third_piece():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cage, grid, periodic", [("cylinder", [2, 4, 1], ["v"]), ("sphere", [1, 3, 4], ["w"])])
-def test_curved_cages_hold_the_bunny_together(tmp_path, cage, grid, periodic):
+@pytest.mark.parametrize("model, cage, grid, periodic", [
+    ("specs/models/cgal_bunny00.ply", "sphere", [1, 3, 4], ["w"]),
+    ("specs/models/stlmodels_gearwheel.bin.stl", "cylinder", [2, 4, 1], ["v"])])
+def test_curved_cages_hold_meshes_together(tmp_path, model, cage, grid, periodic):
     from pathlib import Path
 
-    bunny = Path(__file__).resolve().parent.parent / "specs" / "models" / "cgal_bunny00.ply"
-    spec = {"name": "b", "model": {"mesh": str(bunny), "cage": {"type": cage, "padding": 2}, "size": 80},
+    path = Path(__file__).resolve().parent.parent / model
+    spec = {"name": "b", "model": {"mesh": str(path), "cage": {"type": cage, "padding": 2}, "size": 80},
             "grid": grid, "periodic": periodic, "output": {"tolerance": 0.3, "labels": False}}
     (tmp_path / "b.yaml").write_text(yaml.safe_dump(spec))
     report = build(tmp_path / "b.yaml", output_dir=tmp_path / "out", force=True, jobs=1)
