@@ -237,19 +237,19 @@ def merge_fragments(pieces, min_fraction=0.05):
 
 
 def _one_manifold_solid(m):
-    """True when the Manifold is one body whose surface, with coincident vertices welded, is still 2-manifold (no
-    edge shared by four triangles where two parts touch along a line, no pinched vertex count check needed: a point
-    contact keeps every edge at two)."""
-    from .geometry import to_trimesh
+    """True when the Manifold is one body whose surface is still 2-manifold once stored as STL and 3MF store it
+    (float32 vertices, equal ones merged, collapsed triangles dropped, as pipeline._printable does): two parts that
+    also touch along a line would share an edge among four triangles there."""
+    from .geometry import to_trimesh, weld
 
     if len(m.decompose()) != 1:
         return False
     t = to_trimesh(m)
-    vid = _vertex_ids([t])[0]
-    f = vid[np.asarray(t.faces)]
+    v32, inverse = np.unique(np.asarray(t.vertices, np.float32), axis=0, return_inverse=True)
+    _, f = weld(v32.astype(np.float64), inverse.reshape(-1)[np.asarray(t.faces)], 0.0)
     edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, count = np.unique(edges, axis=0, return_counts=True)
-    return bool(np.all(count == 2))
+    return bool(len(f)) and bool(np.all(count == 2))
 
 
 # --- joints ---------------------------------------------------------------------------------------------------------
