@@ -7,7 +7,7 @@ the mesh is thin, and a fragment handed to a neighbour could carry half a joint 
 
 Contacts. Two pieces cut from neighbouring cells share the cells' common face exactly: compose tessellates a shared
 face once, and the engine cuts both copies by the same mesh triangles, so the shared patch has the same vertices on
-both sides. A triangle of one piece whose three vertices all belong to the other lies on their contact; the sum of
+both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices all belong to the other lies on their contact; the sum of
 their areas is the contact's area (it equals (area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
 A touch along an edge or at a point has no area and is no contact: merging across it would weld a non-manifold solid.
 
