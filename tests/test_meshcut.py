@@ -1,5 +1,5 @@
 """Mesh mode clean-up: pieces of a cage cut by a mesh stay closed, fragments and tiny pieces are merged with the
-volume kept, and joints are moved off cavities or dropped."""
+volume kept, each by its largest contact."""
 
 import manifold3d
 import numpy as np
@@ -8,8 +8,7 @@ import trimesh
 
 from volpuzzle.errors import GeometryError
 from volpuzzle.geometry import from_trimesh, to_trimesh
-from volpuzzle.joint import Joint
-from volpuzzle.meshcut import intersect_pieces, keep_joints_inside, merge_fragments
+from volpuzzle.meshcut import intersect_pieces, merge_fragments
 
 M = manifold3d.Manifold
 
@@ -75,71 +74,38 @@ def test_a_tiny_piece_is_merged_whole(ball):
     assert closed_one_body(merged["p0-0-0"])
 
 
-def test_a_part_that_touches_nobody_is_refused_with_its_cell(ball):
-    pieces = {"p0-0-0": ball, "p1-0-0": box([40, 0, 0], [41, 1, 1])}
-    with pytest.raises(GeometryError, match="p1-0-0: a small piece .* touches no other piece"):
-        merge_fragments(pieces)
+def test_a_fragment_that_touches_nobody_is_refused_with_its_cell(ball):
+    far = box([40, 0, 0], [41, 1, 1])
+    with pytest.raises(GeometryError, match="p1-0-0: a fragment of 1 mm.3 touches no other piece"):
+        merge_fragments({"p0-0-0": ball, "p1-0-0": box([12, -5, -5], [20, 5, 5]) + far})
+    # a small whole piece that touches nobody is no fragment: it stays a piece of its own (the joint stage says so)
+    out, records = merge_fragments({"p0-0-0": ball, "p1-0-0": far})
+    assert sorted(out) == ["p0-0-0", "p1-0-0"] and records == []
 
 
-# --- joints ---------------------------------------------------------------------------------------------------------
-def joint(center, direction=(1.0, 0.0, 0.0), radius=2.0, length=5.0):
-    c = np.asarray(center, float)
-    return Joint(pin_cell=(0, 0, 0), hole_cell=(1, 0, 0), axis=0, across_seam=False, center=c,
-                 direction=np.asarray(direction, float), radius=radius, length=length, clearance=0.15,
-                 axial_clearance=0.3, shape="cylinder", style="pin", space="physical", uvw_pin=np.zeros(3),
-                 uvw_hole=np.zeros(3), base_depth=1.0)
-
-
-@pytest.fixture(scope="module")
-def block_with_pocket():
-    """A 40 mm block with a pocket (radius 4) drilled from the top down to just below the joint at the origin."""
-    block = box([-20, -20, -20], [20, 20, 20])
-    pocket = M.cylinder(30, 4.0, -1.0, 32).translate([0, 0, -3])
-    return to_trimesh(block - pocket)
-
-
-def test_a_joint_in_solid_material_stays(block_with_pocket):
-    j = joint([0, 10, -10])
-    kept, records = keep_joints_inside([j], block_with_pocket)
-    assert kept == [j] and records == []
-
-
-def test_a_joint_in_a_cavity_is_moved_out_with_a_wall(block_with_pocket):
-    j = joint([0, 0, 0])
-    kept, records = keep_joints_inside([j], block_with_pocket, wall=1.5)
-    assert len(kept) == 1 and records[0]["action"] == "moved"
-    moved = kept[0]
-    shift = np.asarray(moved.center) - j.center
-    assert abs(shift[0]) < 1e-12  # along the face (the plane x = 0), not across it
-    assert records[0]["distance"] == pytest.approx(np.linalg.norm(shift))
-    # clear of the pocket by the wall: either beside it or below its floor
-    side = np.hypot(moved.center[1], moved.center[2] if moved.center[2] > -3 else 0.0)
-    below = moved.center[2] < -3 - (2.0 + 0.15 + 1.5)
-    assert below or side >= 4.0 + 2.15 + 1.5 - 1e-6
-    assert moved.pin_cell == j.pin_cell and moved.radius == j.radius
-
-
-def test_a_joint_with_no_room_is_dropped():
-    slab = to_trimesh(box([-20, -20, -2], [20, 20, 2]))  # 4 mm thick: no 2 mm pin fits with a 1.5 mm wall
-    kept, records = keep_joints_inside([joint([0, 0, 0])], slab, wall=1.5)
-    assert kept == [] and records == [{"pin_piece": "p0-0-0", "hole_piece": "p1-0-0", "action": "dropped",
-                                       "distance": 0.0}]
-
-
-def test_a_part_meeting_its_neighbour_only_along_an_edge_is_not_welded(monkeypatch):
-    # A union across an edge contact is non-manifold: no slicer takes it, so the merge must not make it. The contact
-    # score is forced, as on a sphere cage where parts meet along lines that the axis shifts do pick up. A small
-    # whole piece then stays a piece of its own; a fragment (a loose body of another piece) is refused.
-    import volpuzzle.meshcut as meshcut
-
-    monkeypatch.setattr(meshcut, "_touch", lambda frag, other, grow: 1.0)
-    big = manifold3d.Manifold.cube([10.0, 10.0, 10.0])
-    tiny = manifold3d.Manifold.cube([0.5, 0.5, 10.0]).translate([10.0, 10.0, 0.0])
-    out, records = merge_fragments({"p0-0-0": big, "p1-1-0": tiny})
-    assert sorted(out) == ["p0-0-0", "p1-1-0"]
-    assert records[0]["to"] is None and "kept" in records[0]["reason"]
-    with pytest.raises(GeometryError, match="only along an edge or at a point"):
+def test_a_part_meeting_its_neighbour_only_along_an_edge_is_no_contact():
+    # A union across an edge contact is non-manifold: no slicer takes it, so an edge is no contact at all.
+    big = M.cube([10.0, 10.0, 10.0])
+    tiny = M.cube([0.5, 0.5, 10.0]).translate([10.0, 10.0, 0.0])
+    with pytest.raises(GeometryError, match="p1-1-0: a fragment .* touches no other piece"):
         merge_fragments({"p0-0-0": big, "p1-1-0": big.translate([20.0, 0, 0]) + tiny})
+
+
+def test_fragments_follow_their_largest_contact_also_through_a_chain():
+    # Faces that touch share their corners, as compose's cells do. p2's fragment f touches p0 over 10 x 12 and p1
+    # over 10 x 10; p3's fragment g touches only f. f goes to p0, its largest contact, and g follows f there.
+    p0 = box([0, 0, 0], [10, 10, 12])
+    p1 = box([10, 0, 12], [20, 10, 15])
+    f = box([10, 0, 0], [20, 10, 12])
+    g = box([20, 0, 0], [25, 10, 12])
+    p2 = box([50, 0, 0], [80, 10, 12]) + f
+    p3 = box([50, 20, 0], [80, 30, 12]) + g
+    out, records = merge_fragments({"p0-0-0": p0, "p1-0-0": p1, "p2-0-0": p2, "p3-0-0": p3})
+    assert sorted(out) == ["p0-0-0", "p1-0-0", "p2-0-0", "p3-0-0"]
+    assert {(r["from"], r["to"], round(r["volume_mm3"])) for r in records} == {("p2-0-0", "p0-0-0", 1200),
+                                                                               ("p3-0-0", "p0-0-0", 600)}
+    assert out["p0-0-0"].volume() == pytest.approx(1200 + 1200 + 600)
+    assert all(closed_one_body(p) for p in out.values())
 
 
 def test_small_pieces_merge_one_at_a_time_so_neighbours_of_small_pieces_still_count():

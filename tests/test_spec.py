@@ -383,9 +383,9 @@ def test_splits_keyed_by_axis_name(folder):
 
 def test_split_rule_not_understood(folder):
     p = only_problem(folder, merged({"splits": {"u": "knot"}}), "splits.u")
-    assert "unknown value, did you mean 'knots'? (got 'knot', expected one of: uniform, knots)" in p
+    assert "unknown value, did you mean 'knots'? (got 'knot', expected one of: uniform, knots, balanced)" in p
     p = only_problem(folder, merged({"splits": {"u": 0.5}}), "splits.u")
-    assert "not a split rule (got 0.5, expected uniform, knots, or a list of 1 = grid[0] - 1" in p
+    assert "not a split rule (got 0.5, expected uniform, knots, balanced, or a list of 1 = grid[0] - 1" in p
 
 
 def test_split_parameter_count(folder):

@@ -17,7 +17,7 @@ import trimesh
 from .errors import ModelError
 from .spline.volume import Volume
 
-__all__ = ["make_cage", "check_inside", "cage_boundary", "PERIODIC_AXES"]
+__all__ = ["make_cage", "check_inside", "cage_boundary", "mesh_mass", "PERIODIC_AXES"]
 
 PERIODIC_AXES = {"box": [], "cylinder": [1], "sphere": [2]}
 _S = np.sqrt(0.5)
@@ -66,21 +66,58 @@ def _right_handed(axes):
     return r
 
 
-def _box(mesh, pad, cps):
+def _frame_box(pts, axes, pad):
+    local = pts @ axes.T
+    llo, lhi = local.min(axis=0), local.max(axis=0)
+    return axes, axes.T @ ((llo + lhi) / 2), (lhi - llo) / 2 + pad
+
+
+def _balance(mesh, frame, grid, n=24):
+    """The largest over the smallest cell's share of the mesh when a box in `frame` is cut by balanced splits."""
+    from .tile import _balanced, _cell_masses
+
+    axes, center, half = frame
+    t = (np.arange(n) + 0.5) / n
+    local = (np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * 2 - 1) * half
+    w = _inside(mesh, center + local @ axes).reshape(n, n, n).astype(float)
+    if w.sum() <= 0:
+        return np.inf
+    w /= w.sum()
+    breaks = _balanced(tuple(np.linspace(0.0, 1.0, g + 1) for g in grid), w, [a for a in range(3) if grid[a] > 1],
+                       sweeps=2, steps=16)
+    prefix = np.zeros((n + 1,) * 3)
+    prefix[1:, 1:, 1:] = w.cumsum(0).cumsum(1).cumsum(2)
+    cells = _cell_masses(prefix, [np.asarray(b) * n for b in breaks])
+    return float(cells.max() / max(cells.min(), 1e-9))
+
+
+def _box(mesh, pad, cps, balance_grid=None):
+    """balance_grid: the grid of balanced splits, when they are asked for: the box's frame is then the one (axis-
+    aligned, smallest box, principal axes of inertia) whose pieces come out the most even, not the smallest box
+    (the bunny's smallest box leaves its octants 3.3x apart, its axes of inertia 1.3x)."""
     pts = _hull_points(mesh)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     aabb = (np.eye(3), (lo + hi) / 2, (hi - lo) / 2 + pad)
     best, kind = aabb, "axis-aligned"
+    frames = [(aabb, "axis-aligned")]
     try:
-        obb = mesh.bounding_box_oriented.primitive
-        axes = _right_handed(np.asarray(obb.transform)[:3, :3].T)
-        local = pts @ axes.T
-        llo, lhi = local.min(axis=0), local.max(axis=0)
-        cand = (axes, axes.T @ ((llo + lhi) / 2), (lhi - llo) / 2 + pad)
+        cand = _frame_box(pts, _right_handed(np.asarray(mesh.bounding_box_oriented.primitive.transform)[:3, :3].T),
+                          pad)
+        frames.append((cand, "principal axes"))
         if np.prod(cand[2]) < np.prod(aabb[2]) * (1 - 1e-6):
             best, kind = cand, "principal axes"
     except Exception:  # trimesh's oriented bounds can fail on degenerate hulls; the axis-aligned box stands
         pass
+    if balance_grid is not None and any(g > 1 for g in balance_grid):
+        try:
+            frames.append((_frame_box(pts, _right_handed(np.asarray(mesh.principal_inertia_vectors, float)), pad),
+                           "axes of inertia"))
+        except Exception:  # a degenerate inertia tensor: the other frames stand
+            pass
+        scores = [_balance(mesh, f, balance_grid) for f, _ in frames]
+        k = int(np.argmin(scores))
+        if scores[k] < _balance(mesh, best, balance_grid) * (1 - 1e-6):
+            best, kind = frames[k]
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
     degrees = tuple(1 if cps is None else min(3, k - 1) for k in n)
@@ -160,17 +197,18 @@ def _sphere(mesh, pad):
     return vol, info
 
 
-def make_cage(mesh, cage_spec, scale=1.0):
+def make_cage(mesh, cage_spec, scale=1.0, balance_grid=None):
     """A cage Volume (mm, domain [0, 1]^3 for the built-in types) around `mesh` (mm) -> (Volume, info dict).
 
     cage_spec: spec.CageSpec. scale: mm per unit of a NURBS cage file -- the mesh's whole scale (units and size),
-    so that a cage drawn around the unscaled mesh still fits it. info holds 'type', 'periodic' (axis indices of the
-    closed seams, for the spec's `periodic`) and the cage's measures.
+    so that a cage drawn around the unscaled mesh still fits it. balance_grid: the grid, when its splits are balanced
+    (a box cage then takes the frame that cuts the mesh most evenly). info holds 'type', 'periodic' (axis indices of
+    the closed seams, for the spec's `periodic`) and the cage's measures.
     """
     kind = cage_spec.type
     pad = float(cage_spec.padding or 0.0)
     if kind == "box":
-        vol, info = _box(mesh, pad, cage_spec.control_points)
+        vol, info = _box(mesh, pad, cage_spec.control_points, balance_grid)
     elif kind == "cylinder":
         vol, info = _cylinder(mesh, pad)
     elif kind == "sphere":
@@ -285,3 +323,56 @@ def check_inside(mesh, cage, tol=1e-6):
         f"model.cage: the mesh is not inside the cage: it reaches {float(dist[worst]):.3g} mm outside, at "
         f"({', '.join(f'{x:.4g}' for x in pts[worst])}) mm ({out.volume():.4g} mm^3 of it outside); "
         "enlarge the cage or its padding, or shrink the mesh (model.size)")
+
+
+def _inside(mesh, pts, bins=128, chunk=4096):
+    """Bool (n,) for points (n, 3) inside a closed mesh: the parity of the mesh's crossings with a ray along +z from
+    each point. Triangles are binned on an xy grid so that each point meets only its bin's triangles (no rtree)."""
+    tri = np.asarray(mesh.triangles, float)
+    pts = np.asarray(pts, float)
+    lo = np.minimum(tri[:, :, :2].min(axis=(0, 1)), pts[:, :2].min(axis=0))
+    size = float(np.max(np.maximum(tri[:, :, :2].max(axis=(0, 1)), pts[:, :2].max(axis=0)) - lo)) or 1.0
+    # rays off the grid of nice numbers, so that none runs exactly along an edge of a symmetric mesh
+    pts = pts + np.array([0.31830989, 0.23570226, 0.0]) * 1e-7 * size
+    h = size / bins
+    tlo = np.floor((tri[:, :, :2].min(axis=1) - lo) / h).astype(np.int64)
+    thi = np.floor((tri[:, :, :2].max(axis=1) - lo) / h).astype(np.int64)
+    nx, ny = thi[:, 0] - tlo[:, 0] + 1, thi[:, 1] - tlo[:, 1] + 1
+    count = nx * ny
+    tid = np.repeat(np.arange(len(tri)), count)
+    off = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    key = (tlo[tid, 0] + off % nx[tid]) * (bins + 2) + tlo[tid, 1] + off // nx[tid]
+    order = np.argsort(key, kind="stable")
+    key, tid = key[order], tid[order]
+    out = np.zeros(len(pts), bool)
+    for s in range(0, len(pts), chunk):
+        p = pts[s:s + chunk]
+        pb = np.floor((p[:, :2] - lo) / h).astype(np.int64)
+        pk = pb[:, 0] * (bins + 2) + pb[:, 1]
+        first, last = np.searchsorted(key, pk, "left"), np.searchsorted(key, pk, "right")
+        cnt = last - first
+        pid = np.repeat(np.arange(len(p)), cnt)
+        t = tid[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+        a, b, c, q = tri[t, 0], tri[t, 1], tri[t, 2], p[pid]
+        v0, v1, v2 = b - a, c - a, q - a
+        den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):  # edge-on triangles (den 0) never count
+            u = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+            v = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+            hit = (den != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+            hit &= a[:, 2] + u * v0[:, 2] + v * v1[:, 2] > q[:, 2]
+        out[s:s + chunk] = np.bincount(pid[hit], minlength=len(p)) % 2 == 1
+    return out
+
+
+def mesh_mass(fmap, mesh, n=32):
+    """How the mesh's volume spreads over the parameters of the piece map (the cage, warped when randomized), for
+    balanced splits: (n, n, n) fractions of the mesh volume in the n^3 equal boxes of the domain. fmap: mapping.Map;
+    each box is sampled at its centre mapped through it, weighted by |det J| and by whether it lies inside the mesh."""
+    lo, hi = np.asarray(fmap.domain, float).T
+    t = (np.arange(n) + 0.5) / n
+    uvw = lo + np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)
+    xyz, jac = fmap.evaluate_with_jacobian(uvw)
+    weight = np.abs(np.linalg.det(jac)) * _inside(mesh, xyz)
+    total = float(weight.sum())
+    return weight.reshape(n, n, n) / (total if total > 0 else 1.0)

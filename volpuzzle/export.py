@@ -190,8 +190,9 @@ def render_report_md(report: dict) -> str:
     mesh = report.get("mesh") or {}
     if mesh:
         lines += ["", "## Mesh in a cage", "",
-                  f"Joints moved to stay inside the mesh: {mesh.get('joints_moved', 0)}; dropped: "
-                  f"{mesh.get('joints_dropped', 0)}. Fragments merged into a neighbour: {len(mesh.get('merged', []))}. "
+                  f"Contacts between pieces: {mesh.get('contacts_touching', 0)}; with room for a pin: "
+                  f"{mesh.get('contacts_with_room', 0)}; pinned: {mesh.get('contacts_pinned', 0)}. "
+                  f"Fragments merged into a neighbour: {len(mesh.get('merged', []))}. "
                   f"Cells that miss the mesh: {len(mesh.get('cells_without_piece', []))}."]
     assembly = report.get("assembly") or {}
     if assembly.get("words"):

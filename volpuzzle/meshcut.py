@@ -1,19 +1,39 @@
-"""Mesh mode clean-up (paper section 5): cage pieces intersected with the mesh Mp, fragments merged, joints kept
-inside the mesh.
+"""Mesh mode (paper section 5): cage pieces intersected with the mesh Mp, fragments merged by their largest contact,
+and joints placed on the real contact patches between the final pieces.
 
-Recommended order in the pipeline: build the cage pieces WITHOUT pins and holes, intersect_pieces, merge_fragments,
-then keep_joints_inside(joints of the surviving pieces), and only then add pins and cut holes into the merged pieces.
-Intersecting after the pins would clip a pin where the mesh is thin and leave a half hole open to the outside, and a
-fragment handed to a neighbour could carry half a joint with it.
+Order: build the cage pieces WITHOUT pins and holes, intersect_pieces, merge_fragments, then place_joints on the
+merged pieces, and only then add pins and cut holes (add_joints). Intersecting after the pins would clip a pin where
+the mesh is thin, and a fragment handed to a neighbour could carry half a joint with it.
+
+Contacts. Two pieces cut from neighbouring cells share the cells' common face exactly: compose tessellates a shared
+face once, and the engine cuts both copies by the same mesh triangles, so the shared patch has the same vertices on
+both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices all belong to the other lies on their contact; the sum of
+their areas is the contact's area (it equals (area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
+A touch along an edge or at a point has no area and is no contact: merging across it would weld a non-manifold solid.
+
+Joints (the paper's Fig. 15). On each contact patch the pin goes where the patch leaves the most wall: the patch
+point farthest from the patch's boundary (the mesh's surface and the edges where a third piece begins). Its
+direction is the sliding direction of the assembly split that parts the two pieces, so that a block slides off all
+its pins at once, as long as that stays within MAX_TILT_DEG of the patch there. The pin's room (hole, clearance and
+wall) is checked against the real pieces, cropped around the patch, instead of against the whole mesh.
 """
 
-from dataclasses import replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import GeometryError
 
-__all__ = ["intersect_pieces", "merge_fragments", "keep_joints_inside"]
+__all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
+           "joint_graph_problem", "plan_splits", "compose_in_mesh"]
+
+MIN_RADIUS = 1.0  # mm: the smallest pin a pin may shrink to (a 2 mm pin prints on a 0.4 mm nozzle)
+MIN_LENGTH = 3.0  # mm: the shortest pin that still holds a piece in place
+MAX_TILT_DEG = 30.0  # a straight pin may stand this far off its face's normal: the hole's mouth is then 1.15x as
+# long as wide, and the pin's base reaches r tan(30) = 0.58 r deeper to stay attached, still printable
+MAX_PINS = 3  # pins and holes per piece, as in the paper
+_KEY = 1e6  # vertex keys: mm rounded to a nanometre
+_NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
 
 def _check(m, what, step):
@@ -38,176 +58,818 @@ def intersect_pieces(pieces_bodies, mesh_manifold, min_volume=1e-9):
     return out
 
 
-def _touch(frag, other, grow):
-    """Volume of `other` within `grow` mm of `frag`: frag's thin shell, approximated by the union of frag shifted
-    by +-grow along x, y, z (manifold3d has no offset), intersected with other."""
-    lo1, hi1 = np.asarray(frag.bounding_box()).reshape(2, 3)
-    lo2, hi2 = np.asarray(other.bounding_box()).reshape(2, 3)
-    if np.any(lo1 - grow > hi2) or np.any(lo2 > hi1 + grow):
-        return 0.0
-    total = 0.0
-    for k in range(3):
-        for s in (-grow, grow):
-            d = [0.0, 0.0, 0.0]
-            d[k] = s
-            inter = frag.translate(d) ^ other
-            if inter.status().name == "NoError" and not inter.is_empty():
-                total += inter.volume()
-    return total
+# --- contacts -------------------------------------------------------------------------------------------------------
+def _vertex_ids(meshes):
+    """One integer per distinct vertex position over all meshes -> list of (n_i,) int arrays."""
+    keys = np.concatenate([np.round(np.asarray(m.vertices) * _KEY).astype(np.int64) for m in meshes])
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    out, n = [], 0
+    for m in meshes:
+        out.append(inv[n:n + len(m.vertices)])
+        n += len(m.vertices)
+    return out
 
 
-def merge_fragments(pieces, min_fraction=0.05, grow=None):
-    """{id: Manifold} -> ({id: Manifold}, merge records). A piece that falls apart keeps its largest body and gives
-    every other body to the neighbour it touches most; a piece under min_fraction of the mean volume is given away
-    whole the same way. Total volume is kept; ids stay the cells'. A part that touches nobody -> GeometryError.
+def _shared_faces(meshes, ids=None):
+    """{(i, j): (k,) bool mask over mesh i's faces lying on mesh j} for i != j with a positive shared area."""
+    ids = _vertex_ids(meshes) if ids is None else ids
+    boxes = np.array([m.bounds for m in meshes])  # (n, 2, 3)
+    span = float(np.max(boxes[:, 1] - boxes[:, 0])) if len(meshes) else 1.0
+    eps = 1e-6 * max(span, 1.0)
+    out = {}
+    for i, mi in enumerate(meshes):
+        for j, mj in enumerate(meshes):
+            if i == j or np.any(boxes[i, 0] > boxes[j, 1] + eps) or np.any(boxes[j, 0] > boxes[i, 1] + eps):
+                continue
+            on = np.isin(ids[i], ids[j])
+            tri = on[np.asarray(mi.faces)].all(axis=1)
+            if tri.any() and float(mi.area_faces[tri].sum()) > 0.0:
+                out[(i, j)] = tri
+    return out
 
-    Records: {"from": id, "to": id, "volume_mm3": v, "reason": "fragment" | "small piece"}.
-    grow: how far (mm) a part reaches to find its neighbours; default 0.2% of the model's size.
-    """
-    pieces = dict(pieces)
-    if not pieces:
-        return {}, []
-    if grow is None:
-        lo = np.min([np.asarray(p.bounding_box())[:3] for p in pieces.values()], axis=0)
-        hi = np.max([np.asarray(p.bounding_box())[3:] for p in pieces.values()], axis=0)
-        grow = max(1e-3, 2e-3 * float(np.max(hi - lo)))
-    records = []
-    loose = []  # (from id, body, reason)
-    for pid in sorted(pieces):
-        bodies = pieces[pid].decompose()
-        if len(bodies) <= 1:
+
+def _pair_areas(meshes):
+    """{(i, j): mm^2} for i < j: the mean of the two sides' shared areas (they agree up to rounding)."""
+    masks = _shared_faces(meshes)
+    out = {}
+    for (i, j), tri in masks.items():
+        if i < j:
+            back = masks.get((j, i))
+            a = float(meshes[i].area_faces[tri].sum())
+            b = float(meshes[j].area_faces[back].sum()) if back is not None else 0.0
+            out[(i, j)] = 0.5 * (a + b)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Contact:
+    """The patch where piece `a` touches piece `b`: triangles (k, 3, 3) mm of a's surface there, facing out of a
+    into b; area in mm^2; boundary (m, 2, 3) mm, the patch's border edges."""
+
+    a: str
+    b: str
+    area: float
+    triangles: np.ndarray
+    boundary: np.ndarray
+
+
+def contacts(pieces):
+    """{id: trimesh} final pieces -> list of Contact, one per touching pair (a < b), largest first."""
+    names = sorted(pieces)
+    meshes = [pieces[k] for k in names]
+    masks = _shared_faces(meshes)
+    out = []
+    for (i, j), tri in masks.items():
+        if i > j:
             continue
-        bodies = sorted(bodies, key=lambda b: -b.volume())
-        pieces[pid] = bodies[0]
-        loose += [(pid, b, "fragment") for b in bodies[1:]]
-    from .check import closed_problem
+        m = meshes[i]
+        faces = np.asarray(m.faces)[tri]
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        uniq, count = np.unique(edges, axis=0, return_counts=True)
+        border = uniq[count == 1]
+        v = np.asarray(m.vertices)
+        out.append(Contact(names[i], names[j], float(m.area_faces[tri].sum()), v[faces], v[border]))
+    out.sort(key=lambda c: (-c.area, c.a, c.b))
+    return out
+
+
+# --- fragments ------------------------------------------------------------------------------------------------------
+def merge_fragments(pieces, min_fraction=0.05):
+    """{id: Manifold} -> ({id: Manifold}, merge records). Every piece keeps its largest body; every other body (a
+    fragment) and every piece under min_fraction of the mean volume joins the piece it shares the largest contact
+    area with. Contacts are summed over what has merged so far, so a fragment that touches only another fragment
+    follows it, and a ring of fragments (a torus, a knot) finds its piece too. Total volume is kept; ids stay the
+    cells'. A fragment that touches nothing (only at edges or points, or not at all) -> GeometryError; a small piece
+    that touches nothing stays a piece of its own.
+
+    Records: {"from": id, "to": id, "volume_mm3": v, "reason": "fragment" | "small piece"}, and "to" None with
+    "speck dropped" for bodies below a thousandth of a mm^3.
+    """
     from .geometry import to_trimesh
 
-    def give_away(src, body, reason):
-        scores = {pid: _touch(body, other, grow) for pid, other in pieces.items() if pid != src}
-        ranked = sorted((k for k in scores if scores[k] > 0), key=lambda k: (-scores[k], k))
-        if not ranked:
-            raise GeometryError(
-                f"{src}: a {reason} of {body.volume():.4g} mm^3 touches no other piece, so it cannot be merged "
-                "(the mesh has a part that lies in one cell alone; use a finer grid or model.repair)")
-        for best in ranked:
-            merged = _check(pieces[best] + body, best, f"merging a {reason} of {src}")
-            # A part that meets this neighbour only along an edge or at a point (all cells of a sphere cage meet at
-            # its centre) would weld into a non-manifold solid no slicer accepts: try the next neighbour.
-            if len(merged.decompose()) == 1 and closed_problem(to_trimesh(merged)) is None:
-                break
-        else:
-            if reason == "small piece":
-                # Small but whole: better printed on its own than welded into a solid no slicer accepts.
-                pieces[src] = body
-                records.append({"from": src, "to": None, "volume_mm3": float(body.volume()),
-                                "reason": "small piece kept: it meets its neighbours only along an edge or a point"})
-                return False
-            raise GeometryError(
-                f"{src}: a {reason} of {body.volume():.4g} mm^3 meets its neighbours ({', '.join(ranked)}) only along "
-                "an edge or at a point, so merging it would not give one closed solid (use a different grid or cage)")
-        pieces[best] = merged
-        records.append({"from": src, "to": best, "volume_mm3": float(body.volume()), "reason": reason})
-        return True
+    if not pieces:
+        return {}, []
+    bodies, slivers = [], []  # (cell id, Manifold)
+    total = sum(p.volume() for p in pieces.values())
+    for pid in sorted(pieces):
+        parts = sorted(pieces[pid].decompose(), key=lambda b: -b.volume())
+        for k, b in enumerate(parts):
+            # a speck the engine leaves where the mesh grazes a cut (far below a printed layer) touches nothing
+            if k > 0 and b.volume() < min(1e-3, 1e-9 * total):
+                slivers.append({"from": pid, "to": None, "volume_mm3": float(b.volume()), "reason": "speck dropped"})
+            else:
+                bodies.append((pid, b))
+    vols = np.array([b.volume() for _, b in bodies])
+    per_cell = {}
+    for k, (pid, _) in enumerate(bodies):
+        per_cell.setdefault(pid, []).append(k)
+    mean = float(vols.sum()) / len(per_cell)
+    # anchor: a cell's largest body, strong when the cell is big enough to be printed on its own
+    strong = {ks[0] for pid, ks in per_cell.items() if vols[ks].sum() >= min_fraction * mean}
+    weak = {ks[0] for pid, ks in per_cell.items()} - strong
+    if not strong:
+        strong = {max(weak, key=lambda k: vols[k])}
+        weak -= strong
+    areas = _pair_areas([to_trimesh(b) for _, b in bodies])
 
-    for src, body, reason in loose:
-        give_away(src, body, reason)
-    # Pieces too small to print on their own go whole, the smallest first and one at a time, so that a small piece
-    # still finds its face neighbours (which may be small too, and grow by taking it).
-    mean = sum(p.volume() for p in pieces.values()) / len(pieces)
-    kept = set()
-    while len(pieces) > 1:
-        small = [k for k in pieces if k not in kept and pieces[k].volume() < min_fraction * mean]
-        if not small:
+    # clusters of bodies; a cluster is settled when it holds a strong anchor
+    members = {k: [k] for k in range(len(bodies))}
+    touch = {k: {} for k in range(len(bodies))}
+    for (i, j), a in areas.items():
+        touch[i][j] = touch[i].get(j, 0.0) + a
+        touch[j][i] = touch[j].get(i, 0.0) + a
+    settled = {k: k in strong for k in range(len(bodies))}
+    solid = {k: b for k, (_, b) in enumerate(bodies)}
+    banned = set()
+    while True:
+        best = None
+        for c in members:
+            if settled[c]:
+                continue
+            for o, a in touch[c].items():
+                key = (a, -min(members[o]), -min(members[c]))
+                if (c, o) not in banned and (best is None or key > best[0]):
+                    best = (key, c, o)
+        if best is None:
             break
-        pid = min(small, key=lambda k: (pieces[k].volume(), k))
-        if not give_away(pid, pieces.pop(pid), "small piece"):
-            kept.add(pid)
-    return pieces, records
+        _, c, o = best
+        merged = _check(solid[o] + solid[c], bodies[min(members[o])][0], "merging a fragment")
+        if not _one_manifold_solid(merged):
+            # the two also meet along an edge or at a point somewhere (four cells around a cage edge cut a tube into
+            # quarters; diagonal quarters touch along the edge): welded, that is no solid a slicer takes
+            banned.add((c, o))
+            continue
+        solid[o] = merged
+        del solid[c]
+        members[o] += members.pop(c)
+        settled[o] = settled[o] or settled[c]
+        for x, a in touch.pop(c).items():
+            if x == o:
+                continue
+            touch[x].pop(c, None)
+            touch[x][o] = touch[x].get(o, 0.0) + a
+            touch[o][x] = touch[o].get(x, 0.0) + a
+        touch[o].pop(c, None)
+        settled.pop(c)
+
+    out, records = {}, []
+    for c, ks in sorted(members.items(), key=lambda kv: bodies[min(kv[1])][0]):
+        anchors = [k for k in ks if k in strong] or [k for k in ks if k in weak]
+        if not anchors:
+            k = ks[0]
+            pid = bodies[k][0]
+            if any(touch[c].values()):
+                raise GeometryError(
+                    f"{pid}: a fragment of {vols[ks].sum():.4g} mm^3 meets every piece it touches also along an edge "
+                    "or at a point, so merging it would not give one closed solid; use a different grid or cage")
+            raise GeometryError(
+                f"{pid}: a fragment of {vols[ks].sum():.4g} mm^3 touches no other piece (it meets them only along an "
+                "edge or at a point, or not at all), so it cannot be merged; use a different grid or cage")
+        name = bodies[anchors[0]][0]
+        for k in ks:
+            if k != anchors[0]:
+                records.append({"from": bodies[k][0], "to": name, "volume_mm3": float(vols[k]),
+                                "reason": "small piece" if k in weak else "fragment"})
+        out[name] = solid[c]
+    records = sorted(records + slivers, key=lambda r: (r["from"], -r["volume_mm3"]))
+    return out, records
+
+
+def _one_manifold_solid(m):
+    """True when the Manifold is one body whose surface is still 2-manifold once stored as STL and 3MF store it
+    (float32 vertices, equal ones merged, collapsed triangles dropped, as pipeline._printable does): two parts that
+    also touch along a line would share an edge among four triangles there."""
+    from .geometry import to_trimesh, weld
+
+    if len(m.decompose()) != 1:
+        return False
+    t = to_trimesh(m)
+    v32, inverse = np.unique(np.asarray(t.vertices, np.float32), axis=0, return_inverse=True)
+    _, f = weld(v32.astype(np.float64), inverse.reshape(-1)[np.asarray(t.faces)], 0.0)
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, count = np.unique(edges, axis=0, return_counts=True)
+    return bool(len(f)) and bool(np.all(count == 2))
 
 
 # --- joints ---------------------------------------------------------------------------------------------------------
-def _frame(direction):
-    n = np.asarray(direction, float)
-    n = n / np.linalg.norm(n)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = np.cross(helper, n)
+@dataclass(frozen=True)
+class PinSize:
+    """The wanted pin (mm) and how far it may shrink on a small contact."""
+
+    radius: float
+    length: float
+    clearance: float
+    axial_clearance: float
+    shape: str = "cylinder"
+    style: str = "pin"
+    min_radius: float = MIN_RADIUS
+    min_length: float = MIN_LENGTH
+
+
+def _wall(radius):
+    from .joint import _wall as joint_wall
+
+    return joint_wall(radius)
+
+
+def _reach(size, radius):
+    """Radius of the hole a pin of `radius` makes (a snap pin swells)."""
+    from .joint import SNAP_SWELL
+
+    return radius * (SNAP_SWELL if size.shape == "snap" else 1.0) + size.clearance
+
+
+def _frame(d):
+    d = np.asarray(d, float)
+    d = d / np.linalg.norm(d)
+    helper = np.eye(3)[int(np.argmin(np.abs(d)))]
+    e1 = np.cross(helper, d)
     e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1), n
+    return e1, np.cross(d, e1), d
 
 
-def _joint_reach(j):
-    """(radius, back, front) of everything a joint puts into its pieces: the hole with its clearance reaches
-    length + axial clearance into the hole piece, the pin's base reaches base_depth back into the pin piece."""
-    swell = 1.15 if getattr(j, "shape", "cylinder") == "snap" else 1.0
-    r = j.radius * swell + j.clearance
-    back = max(float(getattr(j, "base_depth", 0.0) or 0.0), 0.0)
-    front = j.length + j.axial_clearance
-    return r, back, front
-
-
-def _envelope(center, direction, r, back, front, segments=24):
-    """The joint's room as a Manifold cylinder from `back` behind the face to `front` in front of it (mm)."""
+def _cylinder(center, d, r, z0, z1, segments=24):
     import manifold3d
 
-    e1, e2, n = _frame(direction)
+    e1, e2, n = _frame(d)
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
-    cyl = manifold3d.Manifold.cylinder(back + front, r, -1.0, segments).translate([0.0, 0.0, -back])
-    return _check(cyl.transform(m), "joint", "the joint's envelope")
+    cyl = manifold3d.Manifold.cylinder(z1 - z0, r, -1.0, segments).translate([0.0, 0.0, z0])
+    return _check(cyl.transform(m), "joint", "the joint's room")
 
 
-def _fits(solid, center, direction, r, back, front, wall):
-    """True when the joint's room grown by `wall` lies inside `solid` (a Manifold): nothing of it is left over
-    after subtracting the solid. Exact up to the polygon, and needs no ray tests."""
-    env = _envelope(center, direction, r + wall, back + wall, front + wall)
-    rest = env - solid
-    return rest.is_empty() or rest.volume() <= 1e-6 * env.volume()
+def _outside(env, solids):
+    """True when some of `env` lies outside the union of `solids` (more than a polygon's rounding)."""
+    rest = env
+    for s in solids:
+        rest = rest - s
+        if rest.is_empty():
+            return False
+    return rest.volume() > 1e-5 * env.volume()
 
 
-def keep_joints_inside(joints, mesh, wall=1.5, max_shift=None, steps=6):
-    """Joints whose pin or hole would break through the mesh's surface (deep cavities, the paper's Fig. 15) are moved
-    along their face until they are inside with `wall` mm around them, or dropped.
-
-    joints: iterable of joint.Joint (mm); mesh: the closed trimesh (or its Manifold) in mm. -> (kept joints, records) with records
-    {"pin_piece", "hole_piece", "action": "kept"|"moved"|"dropped", "distance": mm moved}; only moved and dropped
-    joints are recorded. max_shift: farthest move in mm (default 3 joint radii).
-    """
+def _crop(solid, lo, hi):
     import manifold3d
 
-    from .geometry import from_trimesh
+    box = manifold3d.Manifold.cube(list(np.asarray(hi) - np.asarray(lo))).translate(list(lo))
+    return _check(solid ^ box, "joint", "cropping a piece around a contact")
+
+
+def _samples(tris, rng, spacing):
+    """Points (n, 3) spread over triangles (k, 3, 3) about `spacing` apart, their corners and centres included."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    n = int(min(20000, max(200, area.sum() / spacing ** 2)))
+    pick = rng.choice(len(tris), size=n, p=area / area.sum()) if area.sum() > 0 else np.zeros(0, int)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    pts = a[pick] + u[:, None] * (b - a)[pick] + v[:, None] * (c - a)[pick]
+    return np.concatenate([pts, tris.mean(axis=1), tris.reshape(-1, 3)])
+
+
+def _edge_points(edges, spacing):
+    """Points (n, 3) along edges (m, 2, 3) at most `spacing` apart."""
+    if len(edges) == 0:
+        return np.zeros((0, 3))
+    length = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
+    k = np.maximum(1, np.ceil(length / spacing).astype(int))
+    idx = np.repeat(np.arange(len(edges)), k + 1)
+    t = np.concatenate([np.linspace(0.0, 1.0, kk + 1) for kk in k])
+    return edges[idx, 0] + t[:, None] * (edges[idx, 1] - edges[idx, 0])
+
+
+def _seg_distance(p0, p1, q0, q1):
+    """Least distance between segments p0p1 and q0q1 (3,)."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    c, b = d1 @ r, d1 @ d2
+    den = a * e - b * b
+    s = np.clip((b * f - c * e) / den, 0.0, 1.0) if den > 1e-12 else 0.0
+    t = (b * s + f) / e if e > 1e-12 else 0.0
+    if t < 0.0:
+        t, s = 0.0, np.clip(-c / a, 0.0, 1.0) if a > 1e-12 else 0.0
+    elif t > 1.0:
+        t, s = 1.0, np.clip((b - c) / a, 0.0, 1.0) if a > 1e-12 else 0.0
+    return float(np.linalg.norm((p0 + s * d1) - (q0 + t * d2)))
+
+
+@dataclass(frozen=True)
+class _Option:
+    """A pin that fits one contact: centre, direction out of the pin piece, sizes, base depth (mm)."""
+
+    pin: str
+    hole: str
+    center: np.ndarray
+    direction: np.ndarray
+    radius: float
+    length: float
+    base: float
+    reach: float
+    wall: float
+
+    def segment(self):
+        return (self.center - (self.base + self.wall) * self.direction,
+                self.center + (self.length + self.wall) * self.direction)
+
+
+class _Patch:
+    """One contact's candidate pin centres, ranked by their distance to the patch's border, with local normals."""
+
+    def __init__(self, contact, rng):
+        tris = contact.triangles
+        nrm = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        size = float(np.sqrt(contact.area))
+        spacing = float(np.clip(size / 60.0, 0.1, 1.0))
+        from scipy.spatial import cKDTree
+
+        self.points = _samples(tris, rng, spacing)
+        border = _edge_points(contact.boundary, 0.5 * spacing)
+        self.clear = (cKDTree(border).query(self.points)[0] if len(border)
+                      else np.full(len(self.points), np.inf))
+        self.centroids = tris.mean(axis=1)
+        self.normals = nrm  # area-weighted (k, 3): |n| = 2 area
+        self.tree = cKDTree(self.centroids)
+        self.widest = float(self.clear.max()) if len(self.clear) else 0.0
+        self.spacing = spacing
+
+    def normal_at(self, p, radius):
+        """Unit area-weighted normal of the patch within `radius` of p (out of piece a)."""
+        near = self.tree.query_ball_point(p, max(radius, 2 * self.spacing))
+        if not near:
+            near = [int(self.tree.query(p)[1])]
+        n = self.normals[near].sum(axis=0)
+        return n / max(float(np.linalg.norm(n)), 1e-300)
+
+    def spots(self, need, count=10):
+        """Up to `count` centres (3,) with at least `need` mm to the border, widest first, spread apart."""
+        order = np.argsort(-self.clear)
+        order = order[self.clear[order] >= need]
+        pts, clear = self.points[order], self.clear[order]
+        out = []
+        alive = np.ones(len(order), bool)
+        while len(out) < count:
+            left = np.flatnonzero(alive)
+            if not len(left):
+                break
+            i = left[0]
+            out.append((pts[i], float(clear[i])))
+            alive &= np.linalg.norm(pts - pts[i], axis=1) > 0.5 * clear
+        return out
+
+
+def _sizes(size, room):
+    """(radius, length) pairs to try, largest first, for a spot `room` mm from the patch's border."""
+    radii = []
+    r = float(size.radius)
+    while r >= size.min_radius - 1e-9:
+        radii.append(round(r, 2))
+        r *= 0.75
+    if not radii or radii[-1] > size.min_radius:
+        radii.append(float(size.min_radius))
+    lengths = sorted({round(float(size.length), 2), round(max(size.min_length, 0.55 * size.length), 2),
+                      float(size.min_length)}, reverse=True)
+    out = []
+    for r in radii:
+        if _reach(size, r) + _wall(r) > room + 1e-9:
+            continue
+        out += [(r, L) for L in lengths if L <= size.length + 1e-9]
+    return out
+
+
+def _fit(patch, crops, contact, size, p, d, r, L, pin_a):
+    """Whether a pin of radius r and length L at p along d (out of the pin piece) fits its two pieces with its
+    clearance and wall -> (base depth, None) or (None, why)."""
+    R, w = _reach(size, r), _wall(r)
+    rel = patch.points - p
+    t = rel @ d
+    radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
+    near = t[radial <= R + w]
+    lo, hi = (float(near.min()), float(near.max())) if len(near) else (0.0, 0.0)
+    base = round(max(0.5, 1.5 * max(-lo, 0.0) + 0.3), 4)
+    front = L + size.axial_clearance
+    a_solid, b_solid = (crops[contact.a], crops[contact.b]) if pin_a else (crops[contact.b], crops[contact.a])
+    if _outside(_cylinder(p, d, R + w, -(base + w), front + w), [a_solid, b_solid]):
+        return None, "the pin's hole with its wall would break out of the two pieces"
+    if _outside(_cylinder(p, d, R + w, max(hi, 0.0) + 1e-3, front + w), [b_solid]):
+        return None, f"the hole piece is too thin for a {L:g} mm pin with its wall"
+    if _outside(_cylinder(p, d, r + w, -(base + w), min(lo, 0.0) - 1e-3), [a_solid]):
+        return None, "the pin piece is too thin for the pin's base"
+    return base, None
+
+
+def _try(patch, contact, crops, size, direction, pin_a, placed=(), memo=None, max_tests=48):
+    """The best fitting _Option on one contact with the pin in piece a (pin_a) or in b, clear of the joints `placed`
+    (_Option list) by their reach and a wall, or (None, why)."""
+    d = np.asarray(direction, float)
+    if not pin_a:
+        d = -d
+    pin, hole = (contact.a, contact.b) if pin_a else (contact.b, contact.a)
+    cos_max = np.cos(np.radians(MAX_TILT_DEG))
+    need = _reach(size, size.min_radius) + _wall(size.min_radius)
+    spots = patch.spots(need)
+    if not spots:
+        return None, (f"no room: the widest spot of the {contact.area:.0f} mm^2 contact is {patch.widest:.2f} mm from "
+                      f"its edge, a {size.min_radius:g} mm pin with clearance and wall needs {need:.2f} mm")
+    tests, why = 0, None
+    good = []
+    for p, room in spots:
+        n = patch.normal_at(p, room)  # out of a
+        cos = float(n @ d) if pin_a else float(-n @ d)
+        if cos >= cos_max:
+            good.append((p, room))
+    if not good:
+        return None, (f"the sliding direction of the split between {contact.a} and {contact.b} stands more than "
+                      f"{MAX_TILT_DEG:g} deg off the contact wherever a pin has room")
+    trials = [(p, r, L) for r, L in _sizes(size, good[0][1]) for p, room in good[:5]
+              if _reach(size, r) + _wall(r) <= room + 1e-9]
+    for p, r, L in trials:
+        if tests >= max_tests:
+            break
+        R, w = _reach(size, r), _wall(r)
+        seg = (p - (0.5 + w) * d, p + (L + size.axial_clearance + w) * d)  # the base is at least 0.5 mm deep
+        clash = next((o for o in placed if _seg_distance(*seg, *o.segment()) < R + o.reach + max(w, o.wall)), None)
+        if clash is not None:
+            why = why or f"every spot with room would meet the joint between {clash.pin} and {clash.hole}"
+            continue
+        tests += 1
+        key = (pin_a, tuple(np.round(p, 6)), r, L, tuple(np.round(d, 9)))
+        if memo is None or key not in memo:
+            result = _fit(patch, crops, contact, size, p, d, r, L, pin_a)
+            if memo is not None:
+                memo[key] = result
+        else:
+            result = memo[key]
+        base, reason = result
+        if reason is not None:
+            why = reason
+            continue
+        got = _Option(pin, hole, p, d, r, L + size.axial_clearance, base, R, w)
+        if any(_seg_distance(*got.segment(), *o.segment()) < R + o.reach + max(w, o.wall) for o in placed):
+            continue
+        return _Option(pin, hole, p, d, r, L, base, R, w), None
+    return None, why or "no spot holds the pin with its wall"
+
+
+def place_joints(pieces, cells, size, plan=True, seed=0):
+    """Joints on the contacts of the final pieces -> (list of joint.Joint, contact records, AssemblyPlan or None).
+
+    pieces: {id: Manifold} the merged pieces, without joints (mm); cells: {id: cell index}; size: PinSize;
+    plan: True to point every pin along the slide of its split in plan_splits (then the plan is returned too),
+    False to point it along its patch's normal.
+
+    Contacts are taken in the order of a maximum spanning tree of their areas first (so the joint graph stays
+    connected whenever it can), then by area. Each gets one pin where it fits with its clearance and wall, at most
+    MAX_PINS pins and MAX_PINS holes per piece, no two joints within a wall of each other. Records, one per contact:
+    {"pieces": [a, b], "area_mm2", "widest_mm" (the patch's largest distance from its edge), "room" (a pin of the
+    smallest size fits there), "pinned", "reason" (why not, or None), "radius_mm", "length_mm"}.
+    """
+    import networkx as nx
+
+    from .geometry import to_trimesh
+    from .joint import Joint
+
+    meshes = {k: to_trimesh(v) for k, v in pieces.items()}
+    found = contacts(meshes)
+    assembly, dir_of = plan_splits(meshes, found, cells) if plan else (None, {})
+    g = nx.Graph()
+    for c in found:
+        g.add_edge(c.a, c.b, weight=c.area)
+    tree = {frozenset(e) for e in nx.maximum_spanning_edges(g, data=False)} if found else set()
+    rng = np.random.default_rng(seed)
+    depth = size.length + size.axial_clearance + 2 * _wall(size.radius) + 2.0 * _reach(size, size.radius) + 1.0
+    prepared = []  # per contact: patch, crops, planned direction (or None), direction to try first
+    for c in found:
+        patch = _Patch(c, rng)
+        d_plan = dir_of.get((c.a, c.b))
+        d = d_plan
+        if d is None or not np.any(d):
+            d_plan, d = None, patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
+        lo = c.triangles.reshape(-1, 3).min(axis=0) - depth
+        hi = c.triangles.reshape(-1, 3).max(axis=0) + depth
+        crops = {k: _crop(pieces[k], lo, hi) for k in (c.a, c.b)}
+        prepared.append((patch, crops, d_plan, np.asarray(d, float) / np.linalg.norm(d), {}))
+
+    def run(first, tilt_ok=frozenset()):
+        """Place the contacts, those numbered in `first` first, then the spanning tree's, then by area; those in
+        tilt_ok may take a pin along their own normal when their split slides too far off them."""
+        order = sorted(range(len(found)), key=lambda i: (i not in first, frozenset((found[i].a, found[i].b)) not in
+                                                           tree, -found[i].area, found[i].a, found[i].b))
+        pins = {k: 0 for k in pieces}
+        holes = {k: 0 for k in pieces}
+        placed, records = [], {}
+        for i in order:
+            c = found[i]
+            patch, crops, d_plan, d, memo = prepared[i]
+            rec = {"pieces": [c.a, c.b], "area_mm2": round(c.area, 3), "widest_mm": round(patch.widest, 3)}
+            # the pin goes into the piece with fewer pins (then fewer holes), the other way if that one is full
+            roles = sorted((True, False), key=lambda pa: (pins[c.a if pa else c.b] + holes[c.b if pa else c.a],
+                                                          pins[c.a if pa else c.b], not pa))
+
+            def attempt(d):
+                """The first role that is not full and whose pin fits clear of the joints placed so far."""
+                why = None
+                for pin_a in roles:
+                    pin, hole = (c.a, c.b) if pin_a else (c.b, c.a)
+                    if pins[pin] >= MAX_PINS or holes[hole] >= MAX_PINS:
+                        full = pin if pins[pin] >= MAX_PINS else hole
+                        why = why or f"{full} already has {MAX_PINS} {'pins' if full == pin else 'holes'}"
+                        continue
+                    got, reason = _try(patch, c, crops, size, d, pin_a, placed, memo)
+                    if got is not None:
+                        return got, None
+                    why = why or reason
+                return None, why
+
+            option, why = attempt(d)
+            if option is None and i in tilt_ok and d_plan is not None and why and "deg off" in why:
+                # the split's slide stands too far off this contact, which the joint graph needs: a pin along the
+                # contact's own normal holds the piece; the disassembly replay looks for another way apart
+                option, _ = attempt(patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest))
+                if option is not None:
+                    why = None
+                    rec["off_plan"] = True
+            # room: a pin fits the contact at all, whatever the other joints, the counts and the slide say
+            room = option is not None or _try(patch, c, crops, size, d, roles[0], (), memo)[0] is not None
+            if not room and d_plan is not None and why and "deg off" in why:
+                normal = patch.normal_at(patch.points[int(np.argmax(patch.clear))], patch.widest)
+                room = _try(patch, c, crops, size, normal, roles[0], (), memo)[0] is not None
+            rec.update(room=room, pinned=option is not None, reason=why)
+            if option is not None:
+                pins[option.pin] += 1
+                holes[option.hole] += 1
+                placed.append(option)
+                rec.update(radius_mm=option.radius, length_mm=option.length)
+            records[i] = rec
+        return placed, [records[i] for i in range(len(found))]
+
+    def parts(placed):
+        h = nx.Graph()
+        h.add_nodes_from(pieces)
+        h.add_edges_from((o.pin, o.hole) for o in placed)
+        return {k: n for n, comp in enumerate(nx.connected_components(h)) for k in comp}
+
+    first = set()
+    placed, records = run(first)
+    # A joint placed early can take the only room a later bridge had: put the unpinned contacts that would join
+    # two parts of the joint graph first and try again, keeping the best outcome.
+    for _ in range(3):
+        part = parts(placed)
+        if len(set(part.values())) <= 1:
+            break
+        bridges = {i for i, c in enumerate(found) if part[c.a] != part[c.b] and records[i]["room"]}
+        if not bridges - first:
+            break
+        first |= bridges
+        again, again_records = run(first)
+        if (len(set(parts(again).values())), -len(again)) < (len(set(part.values())), -len(placed)):
+            placed, records = again, again_records
+    part = parts(placed)
+    if len(set(part.values())) > 1:
+        # last resort for the bridges whose split slides too far off them: pins along their own normals
+        bridges = frozenset(i for i, c in enumerate(found) if part[c.a] != part[c.b])
+        again, again_records = run(first | bridges, bridges)
+        if len(set(parts(again).values())) < len(set(part.values())):
+            placed, records = again, again_records
+    joints = []
+    nan = np.full(3, np.nan)
+    nan.setflags(write=False)
+    for o in placed:
+        center, direction = np.array(o.center, float), np.array(o.direction, float)
+        center.setflags(write=False)
+        direction.setflags(write=False)
+        joints.append(Joint(
+            pin_cell=tuple(cells[o.pin]), hole_cell=tuple(cells[o.hole]), axis=int(np.argmax(np.abs(o.direction))),
+            across_seam=False, center=center, direction=direction, radius=float(o.radius), length=float(o.length),
+            clearance=float(size.clearance), axial_clearance=float(size.axial_clearance), shape=size.shape,
+            style=size.style, space="physical", uvw_pin=nan, uvw_hole=nan, base_depth=float(o.base)))
+    return joints, records, assembly
+
+
+def joint_graph_problem(piece_ids, joints, records):
+    """None when every piece has a joint and the joint graph (pieces, joints) is one part, else one line naming the
+    piece left out and why its contacts took no pin."""
+    import networkx as nx
+
     from .joint import piece_id
 
-    solid = mesh if isinstance(mesh, manifold3d.Manifold) else from_trimesh(mesh, "mesh model")
-    kept, records = [], []
+    g = nx.Graph()
+    g.add_nodes_from(piece_ids)
     for j in joints:
-        r, back, front = _joint_reach(j)
-        c0 = np.asarray(j.center, float)
-        d = np.asarray(j.direction, float)
-        limit = float(max_shift) if max_shift is not None else 3.0 * (r + wall)
-        # every trial below meets only the mesh near this joint: cut it out once
-        reach = limit + r + wall + max(back, front) + wall
-        local = solid ^ manifold3d.Manifold.cube([2 * reach] * 3, True).translate(c0)
-        if _fits(local, c0, d, r, back, front, wall):
-            kept.append(j)
-            continue
-        e1, e2, _ = _frame(d)
-        found = None
-        # rings of candidate centres on the face plane, nearest first
-        for k in range(1, steps + 1):
-            dist = limit * k / steps
-            n_ang = max(8, int(np.ceil(2 * np.pi * k)))
-            for a in np.linspace(0, 2 * np.pi, n_ang, endpoint=False):
-                c = c0 + dist * (np.cos(a) * e1 + np.sin(a) * e2)
-                if _fits(local, c, d, r, back, front, wall):
-                    found = (c, dist)
-                    break
-            if found:
-                break
-        rec = {"pin_piece": piece_id(j.pin_cell), "hole_piece": piece_id(j.hole_cell)}
-        if found:
-            kept.append(replace(j, center=found[0]))
-            records.append({**rec, "action": "moved", "distance": float(found[1])})
+        g.add_edge(piece_id(j.pin_cell), piece_id(j.hole_cell))
+    parts = sorted(nx.connected_components(g), key=lambda p: (-len(p), min(p)))
+    if len(parts) <= 1:
+        return None
+    loose = sorted(parts[1:], key=lambda p: (len(p), min(p)))[0]
+    name = min(loose, key=lambda k: (g.degree(k), k))
+    mine = [r for r in records if (r["pieces"][0] in loose) != (r["pieces"][1] in loose)]
+    what = "has no joint" if g.degree(name) == 0 else f"and {len(loose) - 1} more hold to the rest by no joint"
+    if not mine:
+        return f"{name}: the piece {what}: it touches no other piece over an area (try a different grid or cage)"
+    best = max(mine, key=lambda r: r["widest_mm"])
+    other = best["pieces"][1] if best["pieces"][0] in loose else best["pieces"][0]
+    return (f"{name}: the piece {what}: its widest contact, with {other}, takes no pin ({best['reason']}); "
+            "try a smaller joints.radius, a coarser grid or different splits")
+
+
+def add_joints(pieces, cells, joints):
+    """{id: Manifold} merged pieces -> {id: Manifold} with their pins added and holes cut."""
+    from .geometry import boolean
+    from .joint import hole_solid, pieces_joints, pin_solid
+
+    out = {}
+    for pid, body in pieces.items():
+        for j, role in pieces_joints(joints, cells[pid]):
+            if role == "pin":
+                body = boolean(body, pin_solid(j), "union", pid)
+            else:
+                body = boolean(body, hole_solid(j, cells[pid]), "difference", pid)
+        out[pid] = body
+    return out
+
+
+def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
+    """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints placed on the
+    final contacts, then pins and holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict)"""
+    from .compose import Piece, compose
+    from .geometry import from_trimesh, to_trimesh
+
+    tiling, model = stages["tiling"], stages["model"]
+    with timer("compose", progress):
+        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
+        # Meshes often have vertices and edges exactly on a cage's mid-plane (a symmetric part centred in its cage).
+        # The engine then splits the two sides by a perturbation that leaves them pinched along those edges, and
+        # merging them welds a non-manifold solid. A shift far below print resolution moves them off the cuts.
+        solid = from_trimesh(model.mesh, "mesh model").translate(list(_NUDGE * float(np.max(model.mesh.extents))))
+        cut = intersect_pieces({p.id: from_trimesh(p.mesh, p.id) for p in bodies}, solid)
+        cut, merges = merge_fragments(cut)
+    cells = {p.id: tuple(p.cell) for p in bodies}
+    joints, records, plan = [], [], None
+    with timer("joint", progress):
+        if joint_spec is not None and joint_spec.style != "none":
+            size = pin_size(joint_spec, model.mesh)
+            joints, records, plan = place_joints(cut, cells, size)
+            problem = joint_graph_problem(sorted(cut), joints, records)
+            # joints.allow: [loose] (the joints branch's key) lets a puzzle in several parts build
+            if problem and "loose" not in tuple(getattr(joint_spec, "allow", ()) or ()):
+                raise GeometryError(problem)
+    pieces = []
+    with timer("compose", progress):
+        jointed = add_joints(cut, cells, joints)
+        for pid in sorted(cut, key=lambda k: cells[k]):
+            mesh = to_trimesh(jointed[pid])
+            pieces.append(Piece(pid, cells[pid], mesh, float(mesh.volume), float(cut[pid].volume()),
+                                int(len(mesh.faces))))
+    report = {"cells_without_piece": sorted(set(cells) - set(cut)), "merged": merges, "contacts": records,
+              "contacts_touching": len(records), "contacts_with_room": sum(1 for r in records if r["room"]),
+              "contacts_pinned": sum(1 for r in records if r["pinned"])}
+    return pieces, joints, plan, report
+
+
+def pin_size(joint_spec, mesh):
+    """The wanted PinSize: the spec's radius and length, else about 2.5% of the model's largest side (1.2 to 4
+    mm) and 2.5 radii long (at least 3 mm)."""
+    from .joint import DEFAULT_AXIAL_CLEARANCE, DEFAULT_CLEARANCE
+
+    side = float(np.max(mesh.extents))
+    r = joint_spec.radius if joint_spec.radius is not None else float(np.clip(round(0.025 * side, 1), 1.2, 4.0))
+    length = joint_spec.length if joint_spec.length is not None else float(np.clip(round(2.5 * r, 1), 3.0, 10.0))
+    c = joint_spec.clearance if joint_spec.clearance is not None else DEFAULT_CLEARANCE
+    ac = joint_spec.axial_clearance if joint_spec.axial_clearance is not None else DEFAULT_AXIAL_CLEARANCE
+    lo_r = getattr(joint_spec, "min_radius", None)  # joints.min_radius / min_length where the spec has them
+    lo_l = getattr(joint_spec, "min_length", None)
+    lo_r = MIN_RADIUS if lo_r is None else float(lo_r)
+    lo_l = MIN_LENGTH if lo_l is None else float(lo_l)
+    return PinSize(float(r), float(length), float(c), float(ac), joint_spec.shape or "cylinder",
+                   joint_spec.style or "pin", min(lo_r, float(r)), min(lo_l, float(length)))
+
+
+def _contact_normals(c):
+    """Unit normals (k, 3) of a contact's triangles (out of c.a) and their areas (k,)."""
+    t = c.triangles
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    size = np.linalg.norm(n, axis=1)
+    keep = size > 1e-12
+    return n[keep] / size[keep, None], 0.5 * size[keep]
+
+
+def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
+    """The plan of splits on the final pieces' contact graph -> (assembly.AssemblyPlan, {(a, b): unit (3,) along
+    which b leaves a}).
+
+    A block of pieces is cut in two where every contact triangle across the cut faces the same way: the moving part
+    leaves along the area-weighted mean normal d of those contacts, and no triangle faces against d (a triangle at an
+    angle beyond 90 deg would block the slide at once). Cuts are tried between the pieces sorted along each contact's
+    normal and the three axes; the best (every contact within MAX_TILT_DEG of d, then the most even, then the closest
+    to d) whose block really slides off, swept every `fine` mm as assembly.verify_disassembly does, wins. meshes:
+    {id: trimesh}; found: contacts(meshes); cells: {id: cell index}.
+    """
+    from .assembly import AssemblyPlan, Step, _Scene
+
+    scene = _Scene(meshes)
+    centre = {k: np.asarray(m.centroid, float) for k, m in meshes.items()}
+    normals = {(c.a, c.b): _contact_normals(c) for c in found}
+    cos_tilt = np.cos(np.radians(MAX_TILT_DEG))
+
+    def parts(block):
+        import networkx as nx
+
+        g = nx.Graph()
+        g.add_nodes_from(block)
+        g.add_edges_from(k for k in normals if k[0] in block and k[1] in block)
+        return sorted((sorted(p) for p in nx.connected_components(g)), key=lambda p: (-len(p), p))
+
+    def crossing(block, moving):
+        """Normals (k, 3) and areas (k,) of the contacts across, facing from the fixed part into the moving one."""
+        ns, ws, pairs = [], [], []
+        for (a, b), (n, w) in normals.items():
+            if a in block and b in block and ((a in moving) != (b in moving)):
+                ns.append(n if b in moving else -n)
+                ws.append(w)
+                pairs.append((a, b))
+        return ns, ws, pairs
+
+    def unit(d):
+        return d / max(float(np.linalg.norm(d)), 1e-12)
+
+    def candidates(block):
+        """(moving, fixed, d) splits of a block, the most promising first."""
+        comps = parts(block)
+        if len(comps) > 1:  # pieces that only touch at edges or points part freely
+            moving = comps[-1]
+            fixed = [k for k in block if k not in moving]
+            return [(moving, fixed, unit(np.mean([centre[k] for k in moving], axis=0)
+                                         - np.mean([centre[k] for k in fixed], axis=0)))]
+        axes = [np.eye(3)[k] for k in range(3)]
+        for k, (n, w) in normals.items():
+            if k[0] in block and k[1] in block:
+                axes.append(unit((n * w[:, None]).sum(axis=0)))
+        cands, seen = [], set()
+        for ax in axes:
+            order = sorted(block, key=lambda k: (float(centre[k] @ ax), k))
+            for cut in range(1, len(order)):
+                moving = frozenset(order[cut:])
+                if moving in seen or frozenset(order[:cut]) in seen:
+                    continue
+                seen.add(moving)
+                ns, ws, _ = crossing(block, moving)
+                if not ns:
+                    continue
+                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws)))
+                low = min(float((n @ d).min()) for n in ns)
+                if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
+                    continue
+                # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
+                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws)]
+                key = (min(means) >= cos_tilt, min(cut, len(order) - cut), min(means), low)
+                cands.append((key, sorted(moving), sorted(order[:cut]), d))
+        cands.sort(key=lambda c: c[0], reverse=True)
+        return [c[1:] for c in cands]
+
+    # each sweep costs Booleans on the whole pieces: a few per piece in all
+    budget = [2 * len(meshes) + 4]
+
+    def slides(moving, fixed, d):
+        # the contacts say nothing of parts that hook round each other away from them (a knot): sweep for real
+        budget[0] -= 1
+        return scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
+
+    def split(block, strict=True):
+        """[(moving, fixed, d), ...] taking the block apart, or None when strict and no order of splits found
+        within the budget slides (a split whose halves cannot be taken apart further is given up for the next)."""
+        if len(block) == 1:
+            return []
+        cands = candidates(set(block))
+        for moving, fixed, d in cands[:max_sweeps]:
+            if budget[0] <= 0 or not slides(moving, fixed, d):
+                continue
+            lo = split(fixed)
+            hi = split(moving) if lo is not None else None
+            if lo is not None and hi is not None:
+                return [(moving, fixed, d)] + lo + hi
+        if strict:
+            return None
+        # nothing slides: the best split on contacts alone, so the plan is complete; the replay will name the pieces
+        if cands:
+            moving, fixed, d = cands[0]
         else:
-            records.append({**rec, "action": "dropped", "distance": 0.0})
-    return kept, records
+            k = sorted(block)[-1]
+            moving, fixed = [k], [x for x in block if x != k]
+            d = unit(centre[k] - np.mean([centre[x] for x in fixed], axis=0))
+        return [(moving, fixed, d)] + split(fixed, False) + split(moving, False)
+
+    blocks = split(sorted(meshes))
+    if blocks is None:
+        budget[0] = len(meshes)
+        blocks = split(sorted(meshes), strict=False)
+    steps, dir_of = [], {}
+    for moving, fixed, d in blocks:
+        _, _, pairs = crossing(set(moving) | set(fixed), set(moving))
+        for a, b in pairs:
+            dir_of[(a, b)] = d if b in moving else -d
+        axis = int(np.argmax(np.abs(d)))
+        steps.append(Step(tuple(sorted(tuple(cells[k]) for k in moving)), tuple(sorted(tuple(cells[k]) for k in fixed)),
+                          axis, 1 if d[axis] >= 0 else -1, ()))
+    order = tuple(sorted(tuple(cells[k]) for k in meshes))
+    return AssemblyPlan((), tuple(steps), order), dir_of

@@ -101,7 +101,8 @@ def _load_mesh_model(spec):
         raise SpecError("joints.space: pins built in the domain are not supported with a mesh model "
                         "(got domain, expected physical)", source=spec.source)
     mesh, scale = load_mesh_scaled(ms.mesh, unit_scale=ms.unit_scale, size=ms.size, repair=ms.repair)
-    cage, cage_info = make_cage(mesh, ms.cage, scale=scale)
+    cage, cage_info = make_cage(mesh, ms.cage, scale=scale,
+                                balance_grid=spec.grid if "balanced" in spec.splits else None)
     check_inside(mesh, cage)
     info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
             "cage": {k: v for k, v in cage_info.items() if isinstance(v, (int, float, str, list, tuple))}}
@@ -162,8 +163,6 @@ def prepare(spec, timer=None, progress=None):
     with timer("verify", progress):
         model_check = verify_model(vol)
     seams, all_seams = _seams_for(spec, vol)
-    with timer("tile", progress):
-        tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams)
     rand = spec.randomize
     warp, rand_report = None, {"seed": None, "amplitude": 0.0, "jacobian_min_coefficient": None, "bijective": True}
     if rand is not None and rand.amplitude > 0:
@@ -175,10 +174,20 @@ def prepare(spec, timer=None, progress=None):
         rand_report = {"seed": rand.seed, "amplitude": rand.amplitude, "control_points": rand.control_points, **cert}
     orientation = -1 if model_check["handedness"] == "left" else 1
     fmap = Map(vol, warp, orientation)
+    with timer("tile", progress):
+        mass = None
+        if model.mesh is not None and "balanced" in spec.splits:
+            from .cage import mesh_mass
+
+            # through the warp too: the cells are cut from the randomized cage
+            mass = mesh_mass(fmap, model.mesh)
+        tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
     _check_grid_vs_tolerance(spec, tiling, fmap)
     plan = None
     with timer("joint", progress):
-        joints = plan_joints(tiling, fmap, spec.joints)
+        # In mesh mode the joints and their plan of splits go on the contacts of the final pieces (meshcut), known
+        # only after composing.
+        joints = plan_joints(tiling, fmap, spec.joints) if model.mesh is None else []
         if joints:
             from .assembly import plan_assembly, reorient_joints, select_joints
 
@@ -275,7 +284,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         return pieces, labels, engraved, checks
 
     if stages["model"].mesh is not None:
-        pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
+        from .meshcut import compose_in_mesh
+
+        pieces, joints, stages["plan"], mesh_report = compose_in_mesh(stages, spec.joints, tolerance, jobs, timer,
+                                                                      progress)
         gaps = sum(joint_gap_volume(j) for j in joints)
         expected = stages["model_report"]["volume_mm3"] - gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
@@ -342,55 +354,6 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
-
-
-def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
-    """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints kept inside
-    the mesh, then pins and holes. -> (pieces, kept joints, report dict)"""
-    from .compose import Piece, compose
-    from .geometry import boolean, from_trimesh, to_trimesh
-    from .joint import hole_solid, piece_id, pieces_joints, pin_solid
-    from .meshcut import intersect_pieces, keep_joints_inside, merge_fragments
-
-    tiling = stages["tiling"]
-    with timer("compose", progress):
-        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
-        solid = from_trimesh(stages["model"].mesh, "mesh model")
-        cage_pieces = {p.id: from_trimesh(p.mesh, p.id) for p in bodies}
-        cut = intersect_pieces(cage_pieces, solid)
-        cut, merges = merge_fragments(cut)
-    cells = {p.id: p.cell for p in bodies}
-    present = set(cut)
-    joints = [j for j in joints if piece_id(j.pin_cell) in present and piece_id(j.hole_cell) in present]
-    with timer("joint", progress):
-        # Each joint may only move where the mesh and its own two cage cells hold it with a wall, so a moved pin
-        # never reaches into a third piece.
-        kept, moved = [], []
-        for j in joints:
-            a, b = piece_id(j.pin_cell), piece_id(j.hole_cell)
-            region = boolean(boolean(cage_pieces[a], cage_pieces[b], "union", f"{a}+{b}"), solid, "intersection",
-                             f"{a}+{b}")
-            k, records = keep_joints_inside([j], region)
-            kept += k
-            moved += records
-        joints = kept
-    pieces = []
-    with timer("compose", progress):
-        for pid in sorted(cut, key=lambda k: cells[k]):
-            body = cut[pid]
-            body_volume = float(body.volume())
-            for j, role in pieces_joints(joints, cells[pid]):
-                if role == "pin":
-                    body = boolean(body, pin_solid(j), "union", pid)
-                else:
-                    body = boolean(body, hole_solid(j, cells[pid]), "difference", pid)
-            mesh = to_trimesh(body)
-            pieces.append(Piece(pid, cells[pid], mesh, float(mesh.volume), body_volume, int(len(mesh.faces))))
-    dropped = sorted(set(cells) - present)
-    report = {"cells_without_piece": dropped, "merged": merges, "joints_moved_or_dropped": moved,
-              "joints_moved": sum(1 for r in moved if r.get("action") == "moved"),
-              "joints_dropped": sum(1 for r in moved if r.get("action") == "dropped")}
-    return pieces, joints, report
 
 
 def _assembly(plan, pieces, joints, timer, progress):

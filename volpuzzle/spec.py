@@ -40,7 +40,7 @@ JOINT_STYLES = ("pin", "dowel", "none")
 JOINT_SHAPES = ("cylinder", "snap")
 JOINT_SPACES = ("physical", "domain")
 FORMATS = ("stl", "3mf")
-SPLIT_MODES = ("uniform", "knots")
+SPLIT_MODES = ("uniform", "knots", "balanced")
 
 DEFAULT_CAGE_PADDING = 1.0  # mm: keeps the mesh off the cage boundary, where Booleans would be coplanar
 _NAME_RE = re.compile(r"[A-Za-z0-9_-]+")
@@ -482,18 +482,23 @@ class _Checker:
             self.bad(path, "not an axis name", _show(value), "an axis name: u, v or w")
         return None
 
-    def splits(self, value, grid):
+    def splits(self, value, grid, mesh=False):
+        """mesh: the model is a mesh, whose axes default to balanced splits (equal volumes of the mesh)."""
+        default = "balanced" if mesh else "uniform"
         if value is not None and not isinstance(value, dict):
             self.bad("splits", "not a mapping", _show(value),
                      "a mapping by axis, e.g. {w: uniform, u: [0.3, 0.7]}")
-            return ("uniform",) * 3
+            return (default,) * 3
         s = self.mapping("splits", value, AXES) or {}
         out = []
         for k, ax in enumerate(AXES):
             if ax not in s or s[ax] is None:
-                out.append("uniform")
+                out.append(default)
                 continue
             out.append(self.split(f"splits.{ax}", s[ax], None if grid is None else grid[k], k))
+            if out[-1] == "balanced" and not mesh:
+                self.bad(f"splits.{ax}", "balanced splits follow a mesh's volume", "balanced without a mesh model",
+                         "uniform, knots or a list of parameters")
         return tuple(out)
 
     def split(self, path, value, cells, k):
@@ -504,7 +509,7 @@ class _Checker:
             if isinstance(value, str):
                 mode = self.enum(path, value, SPLIT_MODES)
             else:
-                self.bad(path, "not a split rule", _show(value), f"uniform, knots, or {expected_list}")
+                self.bad(path, "not a split rule", _show(value), f"uniform, knots, balanced, or {expected_list}")
                 mode = None
             return mode or "uniform"
         params = []
@@ -754,7 +759,7 @@ def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     name = required("name", c.name)
     model = required("model", c.model)
     grid = required("grid", lambda value: c.triple("grid", value, 1))
-    splits = c.splits(top.get("splits"), grid)
+    splits = c.splits(top.get("splits"), grid, mesh=model is not None and model.mesh is not None)
     periodic = c.periodic(top.get("periodic"))
     randomize = c.randomize(top.get("randomize"))
     joints = c.joints(top.get("joints"))
