@@ -38,13 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .joint import piece_id
 
 AXES = "uvw"
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
-
-
-def piece_id(index):
-    return "p" + "-".join(str(int(i)) for i in index)
 
 
 @dataclass(frozen=True)
@@ -238,10 +235,21 @@ def joint_faces(tiling, plan):
     return [(tiling.faces[n], side) for n, side in plan.faces_with_joints]
 
 
-def select_joints(joints, tiling, plan):
-    """The joints of a full volpuzzle.joint.plan_joints run that lie on the plan's faces (pins on the lower cell)."""
-    keys = {_face_key(tiling.faces[n]) for n, _ in plan.faces_with_joints}
-    return [j for j in joints if (int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) in keys]
+def with_joints(plan, tiling, joints):
+    """The plan with the faces that carry the placed joints (volpuzzle.joint.place_joints): faces_with_joints and
+    each step's joints list them, so the plan says what was built."""
+    import dataclasses
+
+    keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
+    numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
+    steps = []
+    for s in plan.steps:
+        mv, fx = set(s.moving), set(s.fixed)
+        across = tuple(n for n in numbers
+                       if (tuple(tiling.faces[n].lower) in mv and tuple(tiling.faces[n].upper) in fx)
+                       or (tuple(tiling.faces[n].lower) in fx and tuple(tiling.faces[n].upper) in mv))
+        steps.append(dataclasses.replace(s, joints=across))
+    return dataclasses.replace(plan, faces_with_joints=tuple((n, "lower") for n in numbers), steps=tuple(steps))
 
 
 def joint_graph_connected(tiling, plan):
@@ -330,38 +338,6 @@ def split_directions(tiling, fmap, plan):
         d = d / size
         unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
         out.append((d, float((unit @ d).min())))
-    return out
-
-
-def reorient_joints(joints, tiling, fmap, plan):
-    """The joints turned to point along their split's mean normal (split_directions), so a block slides off all its
-    pins at once; a pin's base (and its hole's opening) reaches back by reach * tan(turn) more, so a turned pin stays
-    attached over the tilted face. Joints on no step are returned unchanged."""
-    import dataclasses
-
-    dirs = split_directions(tiling, fmap, plan)
-    by_pair = {}
-    for (d, _), step in zip(dirs, plan.steps):
-        mv = set(step.moving)
-        for n in step.joints:
-            f = tiling.faces[n]
-            # the pin leaves the lower cell: along d when the upper cell is the one that moves
-            by_pair[(tuple(f.lower), tuple(f.upper))] = d if tuple(f.upper) in mv else -d
-    out = []
-    for j in joints:
-        d = by_pair.get((tuple(j.pin_cell), tuple(j.hole_cell)))
-        if d is None or not np.any(d):
-            out.append(j)
-            continue
-        cos = float(np.clip(np.dot(d, j.direction), -1.0, 1.0))
-        if cos <= 0.2:
-            out.append(j)  # a split this bent cannot take a straight pin; verify will say so
-            continue
-        reach = j.radius * (1.15 if j.shape == "snap" else 1.0) + j.clearance
-        extra = reach * np.sqrt(1.0 - cos * cos) / cos
-        new = np.array(d, dtype=float)
-        new.setflags(write=False)
-        out.append(dataclasses.replace(j, direction=new, base_depth=round(float(j.base_depth + extra), 4)))
     return out
 
 
