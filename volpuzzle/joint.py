@@ -19,7 +19,7 @@ printer lays down without a support and which does not break off when the pin go
 reach back only reach * tan t (0.58 radii) to stay attached. Beyond about 35-40 deg the lip turns into a knife edge
 thinner than two extrusion lines on a 1 mm pin.
 
-Where on the face. Each face is sampled on a 9 x 9 grid of points; a point is usable at a size when the pin's
+Where on the face. Each face is sampled on a 13 x 13 grid of points; a point is usable at a size when the pin's
 footprint (widened by its lean) keeps a wall to every edge of the face in both pieces, also at the bottom of its hole,
 and both pieces are deep enough for their part of the joint and a wall. Inside a piece every joint is a cylinder (a
 pin's base, reaching back behind the face; a hole, reaching in) and two of them must keep a wall between them. Faces
@@ -302,7 +302,7 @@ class Layout:
 
 
 # Sample points on a face, as fractions along its two in-face axes; the centre first among equals.
-_S = np.linspace(0.1, 0.9, 9)
+_S = np.linspace(0.08, 0.92, 13)
 _CAND = np.array([(sb, sc) for sb in _S for sc in _S])
 
 
@@ -575,31 +575,20 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
     steps = _size_steps(sizes, r_min, l_min)
     first = {n for n, _ in plan.faces_with_joints} if plan is not None else set()
     smallest = steps[-1]
-    alone = {fd.n: _fits(fd, smallest) for fd in data}
-    order = sorted(range(len(data)), key=lambda n: (n not in first, int(alone[n].sum()), n))
-    inside = {idx: [] for idx in tiling.cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
-    chosen = {}
-    for n in order:
-        fd = data[n]
-        score = _room_score(fd)
-        for s in steps:
-            ok = _fits(fd, s)
-            if not ok.any():
-                continue
-            segs = {side: _segments(fd, s, side) for side in (-1, +1)}
-            for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
-                p0, p1, rp = segs[side]
-                for q0, q1, rq in inside[idx]:
-                    ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
-                    if not ok.any():
-                        break
-            if ok.any():
-                k = int(np.argmax(np.where(ok, score, -np.inf)))
-                chosen[n] = (k, s)
-                for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
-                    p0, p1, rp = segs[side]
-                    inside[idx].append((p0[k].copy(), p1[k].copy(), rp))
-                break
+    alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
+    order = sorted(range(len(data)), key=lambda n: (n not in first, alone[n], n))
+    cells = list(tiling.cells)
+    chosen = _greedy(data, steps, order, cells)
+    for _ in range(4):
+        # a face that shrank or got nothing goes first next time, kept if the puzzle is better for it
+        late = [n for n in order if n not in chosen or chosen[n][1] is not sizes]
+        if not late:
+            break
+        order = sorted(order, key=lambda n: n not in late)
+        again = _greedy(data, steps, order, cells)
+        if _cost(again, sizes, data, cells) >= _cost(chosen, sizes, data, cells):
+            break
+        chosen = again
 
     joints, contacts = [], []
     for n, fd in enumerate(data):
@@ -624,6 +613,44 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
     return Layout(tuple(joints), tuple(contacts),
                   {"radius_mm": sizes.radius, "length_mm": sizes.length, "min_radius_mm": r_min,
                    "min_length_mm": l_min})
+
+
+def _greedy(data, steps, order, cells):
+    """Faces in `order`, each at its roomiest point that fits and keeps a wall to the joints already placed in its two
+    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}."""
+    inside = {idx: [] for idx in cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
+    chosen = {}
+    for n in order:
+        fd = data[n]
+        score = _room_score(fd)
+        for s in steps:
+            ok = _fits(fd, s)
+            if not ok.any():
+                continue
+            segs = {side: _segments(fd, s, side) for side in (-1, +1)}
+            for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
+                p0, p1, rp = segs[side]
+                for q0, q1, rq in inside[idx]:
+                    ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
+                    if not ok.any():
+                        break
+            if ok.any():
+                k = int(np.argmax(np.where(ok, score, -np.inf)))
+                chosen[n] = (k, s)
+                for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
+                    p0, p1, rp = segs[side]
+                    inside[idx].append((p0[k].copy(), p1[k].copy(), rp))
+                break
+    return chosen
+
+
+def _cost(chosen, sizes, data, cells):
+    """(parts of the joint graph and loose cells, faces without a joint, faces with a smaller one, mm of radius
+    given up): less is better."""
+    parts, loose = joint_graph(cells, [(data[n].face.lower, data[n].face.upper) for n in chosen])
+    small = [s for _, s in chosen.values() if s is not sizes]
+    return (len(parts) + len(loose), len(data) - len(chosen), len(small),
+            round(sum(sizes.radius - s.radius for s in small), 6))
 
 
 def _why_not(fd, sizes, smallest, room, r_min, l_min):
