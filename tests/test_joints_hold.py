@@ -110,7 +110,7 @@ def test_a_puzzle_in_two_parts_fails_with_one_line():
                  "reason": "no room: the face holds a pin of radius at most 0.6 mm with its clearance and wall"}]
     msg = J.graph_problem(ids, [("p0-0-0", "p1-0-0"), ("p2-0-0", "p3-0-0")], contacts, grid=(4, 1, 1))
     assert msg.startswith("joints: the puzzle falls apart into 2 parts")
-    assert "p1-0-0-p2-0-0: no room" in msg and "expected joints.min_radius at most 0.6 there" in msg
+    assert "between p1-0-0 and p2-0-0, no room" in msg and "expected joints.min_radius at most 0.6 there" in msg
     assert "\n" not in msg
     assert J.graph_problem(ids, [], contacts, style="none") is None
     assert J.graph_problem(ids, [], contacts, allow=("loose",)) is None

@@ -659,8 +659,8 @@ def _why_not(fd, sizes, smallest, room, r_min, l_min):
         return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
     if not room:
         best = _largest_fit(fd, smallest, r_min, l_min)
-        return (f"no room: the face holds a pin of radius at most {best:g} mm with its clearance and wall "
-                f"(smallest allowed {r_min:g} mm, {l_min:g} mm long)")
+        return (f"no room: the face holds a pin of radius at most {best:g} mm with its clearance and wall, less "
+                f"than the smallest allowed, {r_min:g} mm and {l_min:g} mm long")
     if not _fits(fd, smallest).any():
         lean = float(np.degrees(np.arccos(np.clip(fd.cos[_fits(fd, smallest, lean=False)].max(), -1.0, 1.0))))
         return (f"tilt: its split slides {lean:.0f} deg off the face's normal, more than the {MAX_TILT_DEG:g} deg a "
@@ -736,10 +736,11 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
         advice = "a smaller joints.radius, " + advice
     elif any(r.startswith("tilt") for r in reasons):
         advice = "a smaller randomize.amplitude, " + advice
-    why = next((f"{'-'.join(c['pieces'])}: {c['reason']}" for c in mine if c.get("reason")), "it touches no piece")
+    why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
+               "it touches no piece")
     got = f"grid {list(grid)}" if grid is not None else f"{len(parts)} parts"
     if loose:
-        head = f"joints: piece {stray[0]} gets no joint" + (f" (nor {len(loose) - 1} more)" if len(loose) > 1 else "")
+        head = f"joints: piece {stray[0]} gets no joint" + (f" (and {len(loose) - 1} more)" if len(loose) > 1 else "")
     else:
         shown = ", ".join(stray[:4]) + (", ..." if len(stray) > 4 else "")
         head = f"joints: the puzzle falls apart into {len(parts)} parts ({shown} hold to the rest by no joint)"
