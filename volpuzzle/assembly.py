@@ -1,4 +1,4 @@
-"""assembly: which faces carry a joint, and the order in which the pieces go together.
+"""assembly: the order in which the pieces come apart (and go together), and its replay on the real meshes.
 
 Why groups and not single pieces. A straight pin lets its two pieces part only along its axis, and once R has made the
 cut faces bumpy a piece cannot slide along a face it shares with a neighbour either: it can only move away from every
@@ -9,19 +9,18 @@ Any grid with a cycle (2 x 2 x 1 and up) then has pieces without any joint, whic
 
 So the plan is a binary tree of splits instead (as a burr puzzle is built): the current block of cells is cut by one
 grid plane into two blocks, and the upper block leaves the lower one along the plane's axis. Every face crossing the
-split is normal to that axis, so the joints across it all point the same way in parameter space; physically they are
-parallel where the split surface is flat. Each split carries one joint (on the face nearest the middle, or the widest
-face when F is known), plus every other crossing face whose mapped normal lies within `max_angle_deg` of that one's, so
-flat splits (a box, a torus cut through its axis) are pinned on every face. The joint graph is connected and every
-piece has a joint. Assembled, each step joins one finished block onto another: a single piece is a block of one.
+split is normal to that axis in parameter space; in mm the block slides along the split's mean normal
+(split_directions), and volpuzzle.joint.place_joints points every pin of the split that way, on every crossing face
+with room. The plan also names, per split, the face that best holds it (the widest, plus those parallel to it within
+`max_angle_deg`): placed first, they keep the joint graph connected. with_joints records what was placed. Assembled,
+each step joins one finished block onto another: a single piece is a block of one.
 
-Pins always sit on the face's lower cell and point along +axis (as volpuzzle.joint places them): pulling the upper
-block off the lower one pulls the hole off the pin, and each cell keeps at most one pin per max face and one hole per
-min face, three of each at most.
+Pins always sit on the face's lower cell: pulling the upper block off the lower one pulls the hole off the pin, and
+each cell keeps at most one pin per max face and one hole per min face, three of each at most.
 
 A periodic axis is a closed ring with no outer side. It is cut first, into two halves at the face opposite the seam:
-the halves part across both cuts at once (a torus halved through its axis; the joint sits on the middle face, none on
-the seam). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
+the halves part across both cuts at once (a torus halved through its axis: its pins cross the middle face and the
+seam, all parallel). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
 
 verify_disassembly replays the plan on the real meshes: each block is swept along the mean direction of its joints to
 the other block, and manifold3d's intersection volume with every piece of the other block must stay below a tiny
