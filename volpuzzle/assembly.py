@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .joint import piece_id
+from .joint import joint_graph, piece_id
 
 AXES = "uvw"
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
@@ -253,19 +253,9 @@ def with_joints(plan, tiling, joints):
 
 def joint_graph_connected(tiling, plan):
     """True when the jointed faces join every cell into one."""
-    cells = list(tiling.cells)
-    parent = {c: c for c in cells}
-
-    def root(c):
-        while parent[c] != c:
-            parent[c] = parent[parent[c]]
-            c = parent[c]
-        return c
-
-    for n, _ in plan.faces_with_joints:
-        f = tiling.faces[n]
-        parent[root(tuple(f.lower))] = root(tuple(f.upper))
-    return len({root(c) for c in cells}) <= 1
+    parts, _ = joint_graph(list(tiling.cells), [(tuple(tiling.faces[n].lower), tuple(tiling.faces[n].upper))
+                                                for n, _ in plan.faces_with_joints])
+    return len(parts) <= 1
 
 
 def step_problems(tiling, plan):

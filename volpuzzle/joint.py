@@ -56,6 +56,9 @@ def wall(radius):
     return max(0.8, 0.4 * radius)
 
 
+_wall = wall  # the older private name, still imported elsewhere
+
+
 def outer_radius(radius, shape):
     """The widest radius of a pin of this shape (a snap pin swells), mm."""
     return radius * (SNAP_SWELL if shape == "snap" else 1.0)
@@ -737,7 +740,7 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
     elif any(r.startswith("tilt") for r in reasons):
         advice = "a smaller randomize.amplitude, " + advice
     why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
-               "it touches no piece")
+               "no joint was placed on its contacts")
     got = f"grid {list(grid)}" if grid is not None else f"{len(parts)} parts"
     if loose:
         head = f"joints: piece {stray[0]} gets no joint" + (f" (and {len(loose) - 1} more)" if len(loose) > 1 else "")

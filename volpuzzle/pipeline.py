@@ -173,20 +173,21 @@ def prepare(spec, timer=None, progress=None):
     orientation = -1 if model_check["handedness"] == "left" else 1
     fmap = Map(vol, warp, orientation)
     _check_grid_vs_tolerance(spec, tiling, fmap)
-    plan = None
-    with timer("joint", progress):
-        if spec.joints.style != "none" and tiling.faces:
-            from .assembly import plan_assembly, with_joints
+    plan, joints, contacts = None, [], None
+    # In mesh mode the joints and their plan go on the contacts of the final pieces, known only after composing.
+    if model.mesh is None:
+        with timer("joint", progress):
+            if spec.joints.style != "none" and tiling.faces:
+                from .assembly import plan_assembly, with_joints
 
-            # With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is
-            # planned first (blocks that slide apart) and every pin of a split points along its sliding direction.
-            plan = plan_assembly(tiling, fmap)
-        layout = place_joints(tiling, fmap, spec.joints, plan)
-        joints = list(layout.joints)
-        if plan is not None:
-            plan = with_joints(plan, tiling, joints)
-        if model.mesh is None:
-            # mesh mode judges the pieces after the intersection (pipeline._compose_in_mesh)
+                # With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly
+                # is planned first (blocks that slide apart) and every pin of a split points along its sliding
+                # direction.
+                plan = plan_assembly(tiling, fmap)
+            layout = place_joints(tiling, fmap, spec.joints, plan)
+            joints, contacts = list(layout.joints), list(layout.contacts)
+            if plan is not None:
+                plan = with_joints(plan, tiling, joints)
             require_joined(tiling, layout, spec.joints)
     from .spline.measure import bbox
 
@@ -206,7 +207,7 @@ def prepare(spec, timer=None, progress=None):
         **model.info,
     }
     return {"model": model, "tiling": tiling, "fmap": fmap, "joints": joints, "plan": plan,
-            "contacts": list(layout.contacts), "model_report": model_report, "randomize_report": rand_report}
+            "contacts": contacts, "model_report": model_report, "randomize_report": rand_report}
 
 
 def joint_gap_volume(joint):
@@ -296,7 +297,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             # Chords inside a convex surface lose volume in proportion to the chord error. The user's tolerance is
             # an upper bound, so tessellating finer still honours it while making the volumes add up.
             tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
-    _require_joined(spec, pieces, joints, stages.get("contacts") if stages["model"].mesh is None else ())
+    _require_joined(spec, pieces, joints, stages.get("contacts") or ())
     checks["joint_gaps_mm3"] = round(gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
@@ -331,7 +332,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "randomize": stages["randomize_report"],
         "pieces": entries,
         "joints": [j.to_report() for j in joints],
-        "contacts": stages.get("contacts") if stages["model"].mesh is None else None,
+        "contacts": stages.get("contacts"),
         "checks": checks,
         "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
         "assembly_order": assembly.pop("assembly_order"),
