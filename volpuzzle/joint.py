@@ -666,8 +666,8 @@ def _why_not(fd, sizes, smallest, room, r_min, l_min):
                 f"than the smallest allowed, {r_min:g} mm and {l_min:g} mm long")
     if not _fits(fd, smallest).any():
         lean = float(np.degrees(np.arccos(np.clip(fd.cos[_fits(fd, smallest, lean=False)].max(), -1.0, 1.0))))
-        return (f"tilt: its split slides {lean:.0f} deg off the face's normal, more than the {MAX_TILT_DEG:g} deg a "
-                f"straight pin may lean")
+        return (f"tilt: its split slides at least {np.floor(lean * 10) / 10:g} deg off the face's normal where a pin "
+                f"fits, more than the {MAX_TILT_DEG:g} deg a straight pin may lean")
     return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "
             f"{piece_id(fd.face.upper)}")
 
@@ -738,7 +738,8 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
     elif any(r.startswith("crowded") for r in reasons):
         advice = "a smaller joints.radius, " + advice
     elif any(r.startswith("tilt") for r in reasons):
-        advice = "a smaller randomize.amplitude, " + advice
+        # smaller blocks have flatter splits; a bumpy warp tilts them further
+        advice = "more pieces along the curved axis or a smaller randomize.amplitude, or joints.allow: [loose]"
     why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
                "no joint was placed on its contacts")
     got = f"grid {list(grid)}" if grid is not None else f"{len(parts)} parts"
