@@ -410,10 +410,11 @@ def _intrusion(fd, s, side):
     return _base(fd, s), -1, s.radius
 
 
-def _fits(fd, s, lean=True):
+def _fits(fd, s, lean=True, limit=True):
     """(k,) bool: at size s the joint keeps a wall to every edge of the face in both cells (its footprint widened
     by its lean, and shifted by it at the bottom of its hole) and a wall to each cell's far side; with lean the pin
-    also leans at most MAX_TILT_DEG (lean False measures the face alone: a pin normal to it)."""
+    also leans at most MAX_TILT_DEG unless limit is False (lean False measures the face alone: a pin normal to
+    it)."""
     a = fd.face.axis
     b, c = _cyclic(a)
     cos = np.maximum(fd.cos, 1e-6) if lean else np.ones_like(fd.cos)
@@ -429,7 +430,7 @@ def _fits(fd, s, lean=True):
             ok &= (1.0 - fr[:, x]) * lens[:, x] >= foot + np.maximum(shift, 0.0) - 1e-9
             ok &= fr[:, x] * lens[:, x] >= foot + np.maximum(-shift, 0.0) - 1e-9
         ok &= lens[:, a] >= depth * cos + rho * sin + s.wall - 1e-9
-    if lean:
+    if lean and limit:
         ok &= fd.cos >= np.cos(np.radians(MAX_TILT_DEG)) - 1e-12
     return ok
 
@@ -665,7 +666,12 @@ def _why_not(fd, sizes, smallest, room, r_min, l_min):
         return (f"no room: the face holds a pin of radius at most {best:g} mm with its clearance and wall, less "
                 f"than the smallest allowed, {r_min:g} mm and {l_min:g} mm long")
     if not _fits(fd, smallest).any():
-        lean = float(np.degrees(np.arccos(np.clip(fd.cos[_fits(fd, smallest, lean=False)].max(), -1.0, 1.0))))
+        leaning = _fits(fd, smallest, limit=False)
+        if not leaning.any():
+            lean = float(np.degrees(np.arccos(np.clip(fd.cos[fd.usable].max(), -1.0, 1.0))))
+            return (f"tilt: its split slides {np.floor(lean * 10) / 10:g} deg or more off the face's normal, and a pin "
+                    f"leaning that far needs more room than the face has")
+        lean = float(np.degrees(np.arccos(np.clip(fd.cos[leaning].max(), -1.0, 1.0))))
         return (f"tilt: its split slides at least {np.floor(lean * 10) / 10:g} deg off the face's normal where a pin "
                 f"fits, more than the {MAX_TILT_DEG:g} deg a straight pin may lean")
     return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "

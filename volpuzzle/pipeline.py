@@ -311,7 +311,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         from .joint import dowel_solid
 
         dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
-    assembly = _assembly(stages["plan"], pieces, joints, timer, progress, allow=spec.joints.allow)
+    assembly = _assembly(stages["plan"], pieces, joints, timer, progress, allow=spec.joints.allow,
+                         randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
     with timer("layout", progress):
@@ -409,7 +410,7 @@ def _require_joined(spec, pieces, joints, contacts):
         raise SpecError(problem, source=spec.source)
 
 
-def _assembly(plan, pieces, joints, timer, progress, allow=()):
+def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False):
     """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck.
     A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
     from .assembly import steps_in_words, verify_disassembly
@@ -421,9 +422,11 @@ def _assembly(plan, pieces, joints, timer, progress, allow=()):
     if res["welded"]:
         stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
         if "welded" not in tuple(allow):
+            tries = "another grid (more pieces along a curved axis)" + (
+                ", a smaller randomize.amplitude, another randomize.seed" if randomized else "")
             raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
-                                f"(got {len(res['stuck'])} stuck pieces, expected none; try a smaller "
-                                f"randomize.amplitude, another randomize.seed, or joints.allow: [welded])")
+                                f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "
+                                f"joints.allow: [welded])")
         print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
