@@ -171,6 +171,15 @@ def pieces_joints(joints, cell_index):
     return out
 
 
+def gap_volume(joint):
+    """mm^3 the joint leaves empty between its pieces: hole volume beyond the face less the pin (or dowel) volume."""
+    r, c, length, ac = joint.radius, joint.clearance, joint.length, joint.axial_clearance
+    hole = np.pi * (r + c) ** 2 * (length + ac)
+    if joint.style == "dowel":
+        return 2 * hole
+    return hole - np.pi * r ** 2 * length
+
+
 def piece_joints_report(joints, cell_index):
     """A piece's joints for its report.json entry: [{role 'pin' | 'hole', with (the other piece), axis, radius_mm,
     length_mm, shrunk}]."""
@@ -371,8 +380,9 @@ def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
         nrms.append((nrm, size > 1e-9 * max(float(size.max()), 1e-300)))
         # a disc of the largest pin's footprint on the face, to measure how far the face bulges from its tangent plane
         p = np.repeat(uvw[:, None, :], 12, axis=1)
-        p[:, :, b] += ring[None, :, 0] * 1.2 * reach_max / np.maximum(np.linalg.norm(j[:, :, b], axis=1), 1e-12)[:, None]
-        p[:, :, c] += ring[None, :, 1] * 1.2 * reach_max / np.maximum(np.linalg.norm(j[:, :, c], axis=1), 1e-12)[:, None]
+        for ax, col in ((b, 0), (c, 1)):
+            step = 1.2 * reach_max / np.maximum(np.linalg.norm(j[:, :, ax], axis=1), 1e-12)
+            p[:, :, ax] += ring[None, :, col] * step[:, None]
         lo, hi = tiling.cells[f.lower].box
         rings.append(np.clip(p, lo, hi).reshape(-1, 3))
     xr = fmap.evaluate(np.concatenate(rings)).reshape(len(per), k, 12, 3)

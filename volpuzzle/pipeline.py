@@ -1,6 +1,5 @@
 """Runs the stages in order: spec -> model -> tile -> joint -> randomize -> verify -> compose -> check -> export."""
 
-import math
 import os
 import sys
 import time
@@ -211,12 +210,10 @@ def prepare(spec, timer=None, progress=None):
 
 
 def joint_gap_volume(joint):
-    """mm^3 the joint leaves empty between its pieces: hole volume beyond the face less the pin (or dowel) volume."""
-    r, c, length, ac = joint.radius, joint.clearance, joint.length, joint.axial_clearance
-    hole = math.pi * (r + c) ** 2 * (length + ac)
-    if joint.style == "dowel":
-        return 2 * hole
-    return hole - math.pi * r ** 2 * length
+    """mm^3 the joint leaves empty between its pieces (volpuzzle.joint.gap_volume)."""
+    from .joint import gap_volume
+
+    return gap_volume(joint)
 
 
 def _check_plate(spec, tiling, fmap):
@@ -506,6 +503,8 @@ def _label(spec, stages, pieces, joints, timer, progress):
 def pin_triangles(pieces, joints):
     """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
     outer radius (a snap pin swells) and length. For the second (pin) material of 3MF files."""
+    from .joint import outer_radius
+
     out = {}
     for p in pieces:
         mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
@@ -518,7 +517,7 @@ def pin_triangles(pieces, joints):
             rel = c - np.asarray(j.center, float)
             t = rel @ d
             radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
-            reach = j.outer_radius + 1e-3
+            reach = outer_radius(j.radius, j.shape) + 1e-3
             flag |= ((t > 1e-3) & (t <= j.length + 1e-3) & (radial <= reach)).astype(np.uint8)
         out[p.id] = flag
     return out
