@@ -321,13 +321,20 @@ def test_report_has_the_spec_keys():
     assert r["radius_mm"] == 2.5 and r["length_mm"] == 6 and r["direction"] == [1.0, 0.0, 0.0]
 
 
-def test_default_sizes_follow_the_smallest_face_and_fit():
+def test_default_sizes_follow_the_typical_face_and_stay_printable():
     vol = _box()
     t = _tiling(vol, (2, 2, 2))
     r, length = J.default_sizes(t, _map(vol))
-    assert r == pytest.approx(0.12 * 10.0, abs=0.1)  # the smallest face is 15 x 10 mm
-    assert r <= length <= 0.35 * 10.0 + 1e-9
+    assert r == pytest.approx(0.12 * 10.0, abs=0.1)  # the median face's short side is 10 mm
+    assert J.MIN_LENGTH <= length <= 0.35 * 10.0 + 1e-9
     assert J.plan_joints(t, _map(vol), _spec())[0].radius == r
+    # a 6 mm plate still gets printable pins (the old 12% rule gave 0.3 mm ones there)
+    plate = _box(60.0, 60.0, 6.0)
+    tp = _tiling(plate, (4, 4, 1))
+    r, length = J.default_sizes(tp, _map(plate))
+    assert r >= J.MIN_RADIUS and length >= J.MIN_LENGTH
+    joints = J.plan_joints(tp, _map(plate), _spec())
+    assert len(joints) == len(tp.faces) and all(j.radius >= J.MIN_RADIUS for j in joints)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
