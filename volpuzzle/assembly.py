@@ -197,14 +197,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
         else:
             size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
-        flat = {x: 1.0 for x in range(3)}
-        if fmap is not None:
-            for x in range(3):
-                if spans[x] > 1:
-                    flat[x] = _flatness(tiling, fmap, cells, x)
-        # A split whose cut surface curves round (a tube's inner and outer halves) cannot slide apart, and a pin
-        # leans joint.MAX_TILT_DEG (30 deg, cos 0.87) at most: flat enough splits first, then the longest block.
-        a = max(range(3), key=lambda x: (spans[x] > 1, flat[x] >= 0.87, flat[x] >= 0.3, spans[x], size[x]))
+        a = max(range(3), key=lambda x: (spans[x], size[x]))
         fixed, moving = _halves(cells, a)
         cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
@@ -298,18 +291,6 @@ def _halves(cells, a):
     vals = np.unique(np.array(cells)[:, a])
     p = vals[len(vals) // 2]
     return [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
-
-
-def _flatness(tiling, fmap, cells, a):
-    """Least cosine between the cut surface's normals and their mean, for the block cut across axis a (1 flat)."""
-    fixed, moving = _halves(cells, a)
-    ns = _split_normals(tiling, fmap, Step(tuple(moving), tuple(fixed), a, +1, ()), k=3)
-    d = ns.sum(axis=0)
-    size = float(np.linalg.norm(d))
-    if size < 1e-12:
-        return -1.0
-    unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
-    return float((unit @ (d / size)).min())
 
 
 def _split_normals(tiling, fmap, step, k=7):
