@@ -1,5 +1,6 @@
 """Build benchmark: builds specs/twisted-torus.yaml (and the bunny when its spec exists) and prints per-stage times,
-triangles, output size and peak memory. Prints figures; asserts nothing.
+triangles, output size and peak memory, and the joint figures (touching pairs, those with room, pinned, pieces
+without a joint, joint-graph parts, largest/smallest piece volume). Prints figures; asserts nothing.
 
 Targets on a 2-core machine: twisted torus <= 10 s wall and <= 1.5 GB peak for the whole build.
 """
@@ -39,6 +40,31 @@ def bench(spec, jobs):
     print(f"peak memory      {max(self_kb, child_kb) / 1024:8.0f} MB (largest process; main {self_kb / 1024:.0f} MB,"
           f" largest worker {child_kb / 1024:.0f} MB)")
     print(f"volume error     {report['checks']['volume_error']:8.2e}")
+    print_joint_figures(report)
+
+
+def print_joint_figures(report):
+    """The puzzle's joint figures (volpuzzle.joint.report_figures): does it hold together, and how well pinned."""
+    from volpuzzle.joint import report_figures
+
+    fig = report_figures(report)
+
+    def show(x):
+        return "-" if x is None else str(x)
+
+    share = ""
+    if fig["with_room"]:
+        share = f" ({100.0 * fig['pinned_with_room'] / fig['with_room']:.0f}% of those with room)"
+    print(f"touching pairs   {show(fig['touching_pairs']):>8}")
+    print(f"  with room      {show(fig['with_room']):>8}")
+    print(f"  pinned         {show(fig['pinned']):>8}{share}")
+    loose = fig["pieces_without_joint"]
+    print(f"without a joint  {len(loose):8d}" + (f" ({', '.join(loose[:6])})" if loose else ""))
+    print(f"joint-graph parts{fig['parts']:8d}")
+    if fig["largest_volume_mm3"] is not None:
+        ratio = fig["largest_volume_mm3"] / max(fig["smallest_volume_mm3"], 1e-12)
+        print(f"piece volume     {fig['largest_volume_mm3']:8.0f} to {fig['smallest_volume_mm3']:.0f} mm^3 "
+              f"(largest/smallest {ratio:.1f})")
 
 
 def machine_probe():
@@ -62,7 +88,10 @@ def main():
         specs.append(str(bunny))
     print(f"machine probe    {machine_probe():8.3f} s (a fixed Python loop; larger means a slower machine right now)")
     for spec in specs:
-        bench(spec, args.jobs)
+        try:
+            bench(spec, args.jobs)
+        except volpuzzle.VolpuzzleError as e:  # one failed example must not hide the others' figures
+            print(f"== {Path(spec).name}: the build failed: {e}")
 
 
 if __name__ == "__main__":

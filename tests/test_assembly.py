@@ -144,14 +144,16 @@ def test_step_problems_name_a_sliding_step_and_a_loose_one():
     assert any("push into p1-0-0" in p for p in A.step_problems(t, pushing))
 
 
-def test_select_joints_keeps_the_plans_faces():
+def test_with_joints_lists_the_placed_faces():
     t = tile(_box(), (2, 2, 2))
     fmap = _map(_box())
     plan = A.plan_assembly(t)
-    js = A.select_joints(J.plan_joints(t, fmap, SPEC), t, plan)
-    assert len(js) == len(plan.faces_with_joints)
-    faces = A.joint_faces(t, plan)
-    assert {(f.axis, f.lower, f.upper) for f, _ in faces} == {(j.axis, j.pin_cell, j.hole_cell) for j in js}
+    joints = J.plan_joints(t, fmap, SPEC, plan)
+    assert len(joints) == len(t.faces)  # a box has room for a pin on every face
+    placed = A.with_joints(plan, t, joints[:5])
+    faces = A.joint_faces(t, placed)
+    assert {(f.axis, f.lower, f.upper) for f, _ in faces} == {(j.axis, j.pin_cell, j.hole_cell) for j in joints[:5]}
+    assert sorted(n for s in placed.steps for n in s.joints) == sorted(n for n, _ in placed.faces_with_joints)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -170,9 +172,9 @@ def _built(name, all_faces=False, tilt_deg=0.0):
     else:
         t, fmap = _ring_tiling(np.pi / 2, grid=(2, 2, 4))
     plan = A.plan_assembly(t, fmap)
-    joints = J.plan_joints(t, fmap, SPEC)
-    if not all_faces:
-        joints = A.select_joints(joints, t, plan)
+    # all_faces: every face pinned along its own normal, ignoring the plan's sliding directions
+    joints = J.plan_joints(t, fmap, SPEC, None if all_faces else plan)
+    plan = A.with_joints(plan, t, joints)
     if tilt_deg:
         joints = [_tilted(j, k, tilt_deg) for k, j in enumerate(joints)]
     pieces = C.compose(t, fmap, joints, 1.0)
@@ -246,18 +248,19 @@ def test_a_sweep_into_a_neighbour_is_caught():
     assert ok
 
 
-def test_turned_joints_follow_the_split_and_still_come_apart():
-    t, plan, joints, _ = _built("bent")
+def test_pins_of_a_split_are_parallel_lean_at_most_the_limit_and_still_come_apart():
+    t, plan, joints, pieces = _built("bent")
     fmap = _map(_bent(), _warp())
     dirs = A.split_directions(t, fmap, plan)
     assert len(dirs) == len(plan.steps) and all(m > 0 for _, m in dirs)
-    turned = A.reorient_joints(joints, t, fmap, plan)
-    assert len(turned) == len(joints)
-    for old, new in zip(joints, turned):
-        assert abs(np.linalg.norm(new.direction) - 1.0) < 1e-9 and float(np.dot(old.direction, new.direction)) > 0.2
-        assert new.base_depth >= old.base_depth
-    pieces = C.compose(t, fmap, turned, 1.0)
-    _assert_comes_apart(A.verify_disassembly(pieces, turned, plan), [p.id for p in pieces])
+    assert len(joints) == len(t.faces)  # every contact pinned, not one per split
+    for (d, _), step in zip(dirs, plan.steps):
+        mv = set(step.moving)
+        for j in A._across(joints, step.moving, step.fixed):
+            way = 1.0 if tuple(j.hole_cell) in mv else -1.0
+            assert np.allclose(j.direction, way * d, atol=1e-9)
+            assert 0.0 <= j.tilt_deg <= J.MAX_TILT_DEG + 1e-9
+    _assert_comes_apart(A.verify_disassembly(pieces, joints, plan), list(pieces))
 
 
 def test_parts_of_a_piece_cover_it_along_every_direction():

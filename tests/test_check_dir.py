@@ -74,6 +74,38 @@ def test_pin_without_room_in_its_hole(copy):
     fails(copy, "does not fit its hole")
 
 
+def test_a_piece_without_a_joint_fails(copy):
+    report = json.loads((copy / "report.json").read_text())
+    victim = report["joints"][0]["hole_piece"]
+    report["joints"] = [j for j in report["joints"] if victim not in (j["pin_piece"], j["hole_piece"])]
+    (copy / "report.json").write_text(json.dumps(report))
+    fails(copy, f"piece {victim} gets no joint")
+    # the same folder passes when the spec allowed loose pieces
+    report["spec"]["joints"]["allow"] = ["loose"]
+    (copy / "report.json").write_text(json.dumps(report))
+    assert check_directory(copy)["joint_graph"]["pieces_without_joint"] == [victim]
+
+
+def test_a_puzzle_in_two_parts_fails(copy):
+    report = json.loads((copy / "report.json").read_text())
+    # keep only the joints inside the first two pieces' pair and inside the last two: two parts, no loose piece
+    ids = sorted(p["id"] for p in report["pieces"])
+    halves = (set(ids[:2]), set(ids[2:]))
+    report["joints"] = [j for j in report["joints"]
+                        if any({j["pin_piece"], j["hole_piece"]} <= h for h in halves)]
+    (copy / "report.json").write_text(json.dumps(report))
+    parts = check_directory(copy, raise_on_failure=False)["joint_graph"]["parts"]
+    assert parts == 2
+    fails(copy, "falls apart into 2 parts")
+
+
+def test_a_welded_assembly_fails(copy):
+    report = json.loads((copy / "report.json").read_text())
+    report["assembly"]["welded"], report["assembly"]["stuck"] = True, [report["pieces"][0]["id"]]
+    (copy / "report.json").write_text(json.dumps(report))
+    fails(copy, "welded", report["pieces"][0]["id"])
+
+
 def test_not_a_build(tmp_path):
     with pytest.raises(VolpuzzleError, match="no report.json"):
         check_directory(tmp_path)

@@ -30,7 +30,8 @@ def make_pieces(n=2, size=10.0):
 
 
 def make_report(pieces):
-    return {"volpuzzle_version": "0.1.0", "spec": {"name": "cubes", "grid": [2, 2, 2]},
+    # pieces without joints: a jointless puzzle is only a sound build with joints.style none
+    return {"volpuzzle_version": "0.1.0", "spec": {"name": "cubes", "grid": [2, 2, 2], "joints": {"style": "none"}},
             "model": {"volume_mm3": 8000.0, "bbox_mm": [[0, 0, 0], [20, 20, 20]], "handedness": "right"},
             "checks": check_pieces([(p.id, p.mesh) for p in pieces], sum(p.volume for p in pieces)),
             "joints": [], "plates": [], "timings_s": {"compose": 0.5}}

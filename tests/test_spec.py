@@ -98,7 +98,8 @@ def test_full_spec_round_trips_through_spec_to_dict(folder, monkeypatch):
         "periodic": ["w", "u"],
         "randomize": {"seed": 7, "amplitude": 0.3, "control_points": 5},
         "joints": {"style": "dowel", "shape": "snap", "radius": 2.5, "length": 6, "clearance": 0.2,
-                   "axial_clearance": 0.4, "space": "domain"},
+                   "axial_clearance": 0.4, "space": "domain", "min_radius": 0.8, "min_length": 2.5,
+                   "allow": ["welded"]},
         "output": {"directory": "build/x", "format": "3mf", "tolerance": 0.1, "plate": [200, 200],
                    "spacing": 3, "labels": False},
     }
@@ -112,7 +113,8 @@ def test_full_spec_round_trips_through_spec_to_dict(folder, monkeypatch):
     d = spec_to_dict(spec)
     json.dumps(d)  # report.json needs it serialisable
     assert set(d) == {"name", "model", "grid", "splits", "periodic", "randomize", "joints", "output"}
-    assert set(d["joints"]) == {"style", "shape", "radius", "length", "clearance", "axial_clearance", "space"}
+    assert set(d["joints"]) == {"style", "shape", "radius", "length", "clearance", "axial_clearance", "space",
+                                "min_radius", "min_length", "allow"}
     assert set(d["output"]) == {"directory", "format", "tolerance", "plate", "spacing", "labels"}
     assert load(folder, d) == spec
 
@@ -517,7 +519,8 @@ _SECTION_KEYS = {
     "model": ["nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair", "type", "padding",
               "control_points"],
     "splits": ["u", "v", "w"], "randomize": ["seed", "amplitude", "control_points"],
-    "joints": ["style", "shape", "radius", "length", "clearance", "axial_clearance", "space"],
+    "joints": ["style", "shape", "radius", "length", "clearance", "axial_clearance", "space", "min_radius",
+               "min_length", "allow"],
     "output": ["directory", "format", "tolerance", "plate", "spacing", "labels"],
 }
 _scalars = (st.none() | st.booleans() | st.integers(-3, 10) | st.floats(allow_nan=True, allow_infinity=True)

@@ -1,4 +1,4 @@
-"""assembly: which faces carry a joint, and the order in which the pieces go together.
+"""assembly: the order in which the pieces come apart (and go together), and its replay on the real meshes.
 
 Why groups and not single pieces. A straight pin lets its two pieces part only along its axis, and once R has made the
 cut faces bumpy a piece cannot slide along a face it shares with a neighbour either: it can only move away from every
@@ -9,19 +9,18 @@ Any grid with a cycle (2 x 2 x 1 and up) then has pieces without any joint, whic
 
 So the plan is a binary tree of splits instead (as a burr puzzle is built): the current block of cells is cut by one
 grid plane into two blocks, and the upper block leaves the lower one along the plane's axis. Every face crossing the
-split is normal to that axis, so the joints across it all point the same way in parameter space; physically they are
-parallel where the split surface is flat. Each split carries one joint (on the face nearest the middle, or the widest
-face when F is known), plus every other crossing face whose mapped normal lies within `max_angle_deg` of that one's, so
-flat splits (a box, a torus cut through its axis) are pinned on every face. The joint graph is connected and every
-piece has a joint. Assembled, each step joins one finished block onto another: a single piece is a block of one.
+split is normal to that axis in parameter space; in mm the block slides along the split's mean normal
+(split_directions), and volpuzzle.joint.place_joints points every pin of the split that way, on every crossing face
+with room. The plan also names, per split, the face that best holds it (the widest, plus those parallel to it within
+`max_angle_deg`): placed first, they keep the joint graph connected. with_joints records what was placed. Assembled,
+each step joins one finished block onto another: a single piece is a block of one.
 
-Pins always sit on the face's lower cell and point along +axis (as volpuzzle.joint places them): pulling the upper
-block off the lower one pulls the hole off the pin, and each cell keeps at most one pin per max face and one hole per
-min face, three of each at most.
+Pins always sit on the face's lower cell: pulling the upper block off the lower one pulls the hole off the pin, and
+each cell keeps at most one pin per max face and one hole per min face, three of each at most.
 
 A periodic axis is a closed ring with no outer side. It is cut first, into two halves at the face opposite the seam:
-the halves part across both cuts at once (a torus halved through its axis; the joint sits on the middle face, none on
-the seam). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
+the halves part across both cuts at once (a torus halved through its axis: its pins cross the middle face and the
+seam, all parallel). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
 
 verify_disassembly replays the plan on the real meshes: each block is swept along the mean direction of its joints to
 the other block, and manifold3d's intersection volume with every piece of the other block must stay below a tiny
@@ -38,13 +37,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .joint import joint_graph, piece_id
 
 AXES = "uvw"
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
-
-
-def piece_id(index):
-    return "p" + "-".join(str(int(i)) for i in index)
 
 
 @dataclass(frozen=True)
@@ -202,10 +198,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
         else:
             size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
         a = max(range(3), key=lambda x: (spans[x], size[x]))
-        vals = np.unique(idx[:, a])
-        p = vals[len(vals) // 2]
-        fixed = [c for c in cells if c[a] < p]
-        moving = [c for c in cells if c[a] >= p]
+        fixed, moving = _halves(cells, a)
         cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
         chosen = choose(cand, a, +1, mid_lo)
@@ -238,27 +231,28 @@ def joint_faces(tiling, plan):
     return [(tiling.faces[n], side) for n, side in plan.faces_with_joints]
 
 
-def select_joints(joints, tiling, plan):
-    """The joints of a full volpuzzle.joint.plan_joints run that lie on the plan's faces (pins on the lower cell)."""
-    keys = {_face_key(tiling.faces[n]) for n, _ in plan.faces_with_joints}
-    return [j for j in joints if (int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) in keys]
+def with_joints(plan, tiling, joints):
+    """The plan with the faces that carry the placed joints (volpuzzle.joint.place_joints): faces_with_joints and
+    each step's joints list them, so the plan says what was built."""
+    import dataclasses
+
+    keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
+    numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
+    steps = []
+    for s in plan.steps:
+        mv, fx = set(s.moving), set(s.fixed)
+        across = tuple(n for n in numbers
+                       if (tuple(tiling.faces[n].lower) in mv and tuple(tiling.faces[n].upper) in fx)
+                       or (tuple(tiling.faces[n].lower) in fx and tuple(tiling.faces[n].upper) in mv))
+        steps.append(dataclasses.replace(s, joints=across))
+    return dataclasses.replace(plan, faces_with_joints=tuple((n, "lower") for n in numbers), steps=tuple(steps))
 
 
 def joint_graph_connected(tiling, plan):
     """True when the jointed faces join every cell into one."""
-    cells = list(tiling.cells)
-    parent = {c: c for c in cells}
-
-    def root(c):
-        while parent[c] != c:
-            parent[c] = parent[parent[c]]
-            c = parent[c]
-        return c
-
-    for n, _ in plan.faces_with_joints:
-        f = tiling.faces[n]
-        parent[root(tuple(f.lower))] = root(tuple(f.upper))
-    return len({root(c) for c in cells}) <= 1
+    parts, _ = joint_graph(list(tiling.cells), [(tuple(tiling.faces[n].lower), tuple(tiling.faces[n].upper))
+                                                for n, _ in plan.faces_with_joints])
+    return len(parts) <= 1
 
 
 def step_problems(tiling, plan):
@@ -290,6 +284,13 @@ def step_problems(tiling, plan):
         if joints_across == 0:
             out.append(f"{name}: no joint holds the two blocks together")
     return out
+
+
+def _halves(cells, a):
+    """The block `cells` cut across axis a at its middle -> (fixed: below the cut, moving: above it)."""
+    vals = np.unique(np.array(cells)[:, a])
+    p = vals[len(vals) // 2]
+    return [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
 
 
 def _split_normals(tiling, fmap, step, k=7):
@@ -330,38 +331,6 @@ def split_directions(tiling, fmap, plan):
         d = d / size
         unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
         out.append((d, float((unit @ d).min())))
-    return out
-
-
-def reorient_joints(joints, tiling, fmap, plan):
-    """The joints turned to point along their split's mean normal (split_directions), so a block slides off all its
-    pins at once; a pin's base (and its hole's opening) reaches back by reach * tan(turn) more, so a turned pin stays
-    attached over the tilted face. Joints on no step are returned unchanged."""
-    import dataclasses
-
-    dirs = split_directions(tiling, fmap, plan)
-    by_pair = {}
-    for (d, _), step in zip(dirs, plan.steps):
-        mv = set(step.moving)
-        for n in step.joints:
-            f = tiling.faces[n]
-            # the pin leaves the lower cell: along d when the upper cell is the one that moves
-            by_pair[(tuple(f.lower), tuple(f.upper))] = d if tuple(f.upper) in mv else -d
-    out = []
-    for j in joints:
-        d = by_pair.get((tuple(j.pin_cell), tuple(j.hole_cell)))
-        if d is None or not np.any(d):
-            out.append(j)
-            continue
-        cos = float(np.clip(np.dot(d, j.direction), -1.0, 1.0))
-        if cos <= 0.2:
-            out.append(j)  # a split this bent cannot take a straight pin; verify will say so
-            continue
-        reach = j.radius * (1.15 if j.shape == "snap" else 1.0) + j.clearance
-        extra = reach * np.sqrt(1.0 - cos * cos) / cos
-        new = np.array(d, dtype=float)
-        new.setflags(write=False)
-        out.append(dataclasses.replace(j, direction=new, base_depth=round(float(j.base_depth + extra), 4)))
     return out
 
 

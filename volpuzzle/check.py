@@ -19,7 +19,8 @@ import trimesh
 from .errors import GeometryError, ModelError, VolpuzzleError
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
-           "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid"]
+           "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
+           "check_joint_graph"]
 
 # id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
 # (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
@@ -462,6 +463,31 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> l
     return failures
 
 
+def check_joint_graph(report: dict):
+    """The puzzle holds together, from report.json alone -> (failure sentences, figures of
+    volpuzzle.joint.report_figures). Every listed piece must carry a joint and the joints must join them into one
+    part, unless the spec's joints.style is none or its joints.allow has 'loose'; the recorded assembly must not be
+    welded unless joints.allow has 'welded'."""
+    from .joint import graph_problem
+
+    joints_spec = ((report.get("spec") or {}).get("joints") or {})
+    style = joints_spec.get("style", "pin")
+    allow = tuple(joints_spec.get("allow") or ())
+    pieces = [p.get("id") for p in report.get("pieces") or []]
+    edges = [(j.get("pin_piece"), j.get("hole_piece")) for j in report.get("joints") or []]
+    failures = []
+    problem = graph_problem(pieces, edges, report.get("contacts") or (), style, allow)
+    if problem:
+        failures.append(problem)
+    assembly = report.get("assembly") or {}
+    if assembly.get("welded") and "welded" not in allow:
+        failures.append(f"the puzzle is welded: {', '.join(assembly.get('stuck') or [])} cannot be taken out "
+                        f"(joints.allow has no 'welded')")
+    from .joint import report_figures
+
+    return failures, report_figures(report)
+
+
 def check_directory(directory, raise_on_failure: bool = True) -> dict:
     """`volpuzzle check DIR`: re-run the checks on a built puzzle from its files alone.
 
@@ -506,8 +532,9 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     checks["missing_files"] = missing
     joint_failures = check_joints(dict(pieces), joints)
     checks["joints_checked"] = len(joints)
+    graph_failures, checks["joint_graph"] = check_joint_graph(report)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
-                          + joint_failures)
+                          + joint_failures + graph_failures)
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "

@@ -1,28 +1,39 @@
-"""joint: one pin (or dowel) per shared face, placed so that the pins and holes of a piece never meet.
+"""joint: a pin (or dowel) on every shared face with room for one, each placed on its own face.
 
-Placement. A face along axis a joins its `lower` cell (pin) to its `upper` cell (hole), so the pin always points along
-+a, also across a periodic seam (the last cell along a carries the pin). Every cell then has at most one pin on each of
-its three max faces and one hole on each of its three min faces: at most three of each.
+This module owns a joint's geometry: its sizes (outer radius, clearance, wall), where it crosses its face, the way it
+points, and its solids. pipeline.py only calls place_joints.
 
-Inside one piece the joint solids of two different axes a, b (third axis c) are kept apart by one of
-  - a lateral offset: their lines differ in c by at least 2 (radius + clearance) + a wall, so the axes are skew, or
-  - depth: the a-joints reach only `length + axial_clearance` (or `base_depth`) into the piece from its a-faces, and
-    the b-joint crosses the piece at an a-level beyond that.
-Each axis gets one offset pattern on its faces, (k_b, k_c) in {-1, 0, 1}^2 steps of that separation; the cheapest
-pattern for which every pair in every piece is apart (including holes moved by a seam's swap or flip), and every pin
-circle stays a wall inside its face, wins. Joints of one axis in one piece (pin base on the max face, hole on the min
-face) are kept apart by depth: their intrusions plus a wall must fit in the piece's depth.
+Who gets a pin. A face along axis a joins its `lower` cell (pin) to its `upper` cell (hole), also across a periodic
+seam (the last cell along a carries the pin), so every cell has at most one pin on each of its three max faces and
+one hole on each of its three min faces: at most three of each, as in the paper. Every face whose two pieces hold a
+pin with its clearance and wall gets one; a face without one is reported with the reason (Layout.contacts).
 
-Space. 'physical' (default): the joint is a straight cylinder in mm, centred where F maps the face parameter and
-perpendicular to the mapped face, so radius, length and clearances hold in the printed object. 'domain': the pin is
-built in the parameter domain and composed with the piece through F, as the paper does; it is sized by the Jacobian at
-the face point, so it is right only to first order and is distorted where F bends (the paper's Fig. 16 problem). Across
-a periodic seam a domain-space pin reaches past the domain's max along a; compose must evaluate it there (or through
-the seam).
+Which way it points. With an assembly plan (volpuzzle.assembly) every face belongs to the one split of the plan that
+parts its two cells, and all pins of a split are parallel to that split's sliding direction (the mean normal of its
+whole cut surface), so a block slides off all its pins at once. A pin therefore leans against its own face by up to
+MAX_TILT_DEG; without a plan it stands normal to its face.
+
+Why 30 degrees. A straight pin leaning by t meets its face in an ellipse 1/cos t longer than the pin is wide (1.15 at
+30 deg), and the lip of its hole is a wedge of 90 - t degrees of material; at 30 deg that wedge is 60 deg, which a
+printer lays down without a support and which does not break off when the pin goes in, and the pin's base has to
+reach back only reach * tan t (0.58 radii) to stay attached. Beyond about 35-40 deg the lip turns into a knife edge
+thinner than two extrusion lines on a 1 mm pin.
+
+Where on the face. Each face is sampled on a 13 x 13 grid of points; a point is usable at a size when the pin's
+footprint (widened by its lean) keeps a wall to every edge of the face in both pieces, also at the bottom of its hole,
+and both pieces are deep enough for their part of the joint and a wall. Inside a piece every joint is a cylinder (a
+pin's base, reaching back behind the face; a hole, reaching in) and two of them must keep a wall between them. Faces
+are placed one at a time, the plan's own faces first (they hold the puzzle together), each at its roomiest usable
+point that keeps apart from the joints already placed in its two pieces; where none is left at the asked size the pin
+shrinks, down to min_radius and min_length (default MIN_RADIUS, MIN_LENGTH: still printable).
+
+Space. 'physical' (default): the joint is a straight cylinder in mm, so radius, length and clearances hold in the
+printed object. 'domain': the pin is built in the parameter domain and composed with the piece through F, as the paper
+does; it is sized by the Jacobian at the face point, so it is right only to first order and is distorted where F bends
+(the paper's Fig. 16 problem).
 """
 
-from dataclasses import dataclass
-from itertools import product
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,11 +44,24 @@ CIRCLE_TOL = 0.02  # mm: largest distance between a joint's polygon and its circ
 SNAP_SWELL = 1.15  # widest radius of a snap pin, in pin radii
 DEFAULT_CLEARANCE = 0.15
 DEFAULT_AXIAL_CLEARANCE = 0.3
+MIN_RADIUS = 1.0  # mm: the smallest pin a pin shrinks to by default (2 mm across: four lines of a 0.4 mm nozzle)
+MIN_LENGTH = 3.0  # mm: the shortest pin that still holds its piece by default
+DEFAULT_MAX_RADIUS = 2.5  # mm: a derived radius stops growing here; larger pins only when asked
+MAX_TILT_DEG = 30.0  # the most a straight pin may lean against its face (see the module docstring)
+ALLOW = ("loose", "welded")  # what joints.allow may accept: pieces without a joint, pieces that cannot come out
 
 
-def _wall(radius):
-    """mm of material kept between two holes, and between a hole and a face's edge."""
+def wall(radius):
+    """mm of material kept between two joints in a piece, and between a joint and a face's edge."""
     return max(0.8, 0.4 * radius)
+
+
+_wall = wall  # the older private name, still imported elsewhere
+
+
+def outer_radius(radius, shape):
+    """The widest radius of a pin of this shape (a snap pin swells), mm."""
+    return radius * (SNAP_SWELL if shape == "snap" else 1.0)
 
 
 def piece_id(index):
@@ -63,7 +87,8 @@ class Joint:
     pin_cell into hole_cell; uvw_pin (3,): the parameter of that crossing on the pin cell's face; uvw_hole (3,): the
     same point on the hole cell's face (differs across a seam); base_depth: how far the pin (and the hole's opening)
     reaches back behind the face so that it stays attached on a curved face; jacobian_pin / jacobian_hole (3, 3):
-    dF/duvw at uvw_pin / uvw_hole, for the domain-space solids.
+    dF/duvw at uvw_pin / uvw_hole, for the domain-space solids; tilt_deg: the angle between direction and the face's
+    normal there; shrunk: smaller than asked, to fit its face.
     """
 
     pin_cell: tuple
@@ -84,11 +109,27 @@ class Joint:
     base_depth: float
     jacobian_pin: np.ndarray = None
     jacobian_hole: np.ndarray = None
+    tilt_deg: float = 0.0
+    shrunk: bool = False
+
+    @property
+    def outer_radius(self):
+        """The pin's widest radius, mm."""
+        return outer_radius(self.radius, self.shape)
+
+    @property
+    def reach(self):
+        """The hole's widest radius (pin and clearance), mm."""
+        return self.outer_radius + self.clearance
+
+    @property
+    def wall(self):
+        return wall(self.radius)
 
     @property
     def segments(self):
         """Circle segments for pin and hole alike (same count keeps the radial gap uniform)."""
-        r = (self.radius * (SNAP_SWELL if self.shape == "snap" else 1.0)) + self.clearance
+        r = self.reach
         n = int(np.ceil(np.pi / np.arccos(max(1.0 - CIRCLE_TOL / r, -1.0))))
         return int(max(16, 4 * int(np.ceil(n / 4))))
 
@@ -112,6 +153,8 @@ class Joint:
             "shape": self.shape,
             "space": self.space,
             "across_seam": bool(self.across_seam),
+            "tilt_deg": round(float(self.tilt_deg), 2),
+            "shrunk": bool(self.shrunk),
         }
 
 
@@ -128,6 +171,24 @@ def pieces_joints(joints, cell_index):
     return out
 
 
+def gap_volume(joint):
+    """mm^3 the joint leaves empty between its pieces: hole volume beyond the face less the pin (or dowel) volume."""
+    r, c, length, ac = joint.radius, joint.clearance, joint.length, joint.axial_clearance
+    hole = np.pi * (r + c) ** 2 * (length + ac)
+    if joint.style == "dowel":
+        return 2 * hole
+    return hole - np.pi * r ** 2 * length
+
+
+def piece_joints_report(joints, cell_index):
+    """A piece's joints for its report.json entry: [{role 'pin' | 'hole', with (the other piece), axis, radius_mm,
+    length_mm, shrunk}]."""
+    idx = tuple(cell_index)
+    return [{"role": role, "with": piece_id(j.hole_cell if tuple(j.pin_cell) == idx else j.pin_cell),
+             "axis": AXES[j.axis], "radius_mm": float(j.radius), "length_mm": float(j.length), "shrunk": bool(j.shrunk)}
+            for j, role in pieces_joints(joints, idx)]
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Measuring the cells
 
@@ -135,11 +196,9 @@ def pieces_joints(joints, cell_index):
 @dataclass(frozen=True, eq=False)
 class _Geometry:
     """lengths: {cell: (3, G, G)} mm length of the cell's parameter lines along each axis a, on a G x G grid of the
-    other two (cyclic) fractions _GRID, each line as a polyline of 8 chords; sag: {face number: mm of the face's bulge
-    per mm^2 of disc radius at its centre}."""
+    other two (cyclic) fractions _GRID, each line as a polyline of 8 chords."""
 
     lengths: dict
-    sag: dict
 
 
 _GRID = np.linspace(0.0, 1.0, 7)
@@ -180,39 +239,7 @@ def _measure(tiling, fmap):
             pts.append(lo + fr.reshape(-1, 3) * (hi - lo))
     xyz = fmap.evaluate(np.concatenate(pts)).reshape(len(cells), 3, ng, ng, 9, 3)
     seg = np.linalg.norm(np.diff(xyz, axis=4), axis=-1).sum(axis=4)  # (cells, 3, ng, ng)
-    geo = _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)}, {})
-
-    # The bulge of each face over a small disc at its centre, to size the pin's base.
-    if tiling.faces:
-        ring = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)
-        centers, info = [], []
-        for n, f in enumerate(tiling.faces):
-            cell = tiling.cells[f.lower]
-            a = f.axis
-            b, c = _cyclic(a)
-            uvw = cell.center.copy()
-            uvw[a] = cell.box[1, a]
-            fr = np.array([[0.5, 0.5, 0.5]])
-            fr[0, a] = 1.0
-            rho = 0.2 * min(float(_len_at(geo, f.lower, b, fr)[0]), float(_len_at(geo, f.lower, c, fr)[0]))
-            centers.append(uvw)
-            info.append((n, a, b, c, rho))
-        x0, jac = fmap.evaluate_with_jacobian(np.array(centers))
-        steps = []
-        for (n, a, b, c, rho), u0, j in zip(info, centers, jac):
-            p = np.repeat(u0[None], 8, axis=0)
-            p[:, b] += ring[:, 0] * rho / max(np.linalg.norm(j[:, b]), 1e-12)
-            p[:, c] += ring[:, 1] * rho / max(np.linalg.norm(j[:, c]), 1e-12)
-            steps.append(p)
-        xr = fmap.evaluate(np.concatenate(steps)).reshape(len(steps), 8, 3)
-        for (n, a, b, c, rho), x, xc, j in zip(info, xr, x0, jac):
-            nrm = np.cross(j[:, b], j[:, c])
-            size = np.linalg.norm(nrm)
-            if rho <= 1e-9 or size <= 1e-12:
-                geo.sag[n] = 0.0  # a collapsed face: no joint will fit there anyway
-                continue
-            geo.sag[n] = float(np.max(np.abs((x - xc) @ (nrm / size)))) / rho ** 2
-    return geo
+    return _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)})
 
 
 def _face_side(tiling, geo, f):
@@ -230,28 +257,22 @@ def _round_down(x, step=0.1):
 
 
 def default_sizes(tiling, fmap, _geo=None):
-    """(radius, length) mm from the smallest face and the thinnest cell: radius 12% of the smallest face's short side,
-    length 2 radii but at most 35% of the thinnest cell depth; both rounded down to 0.1 mm."""
+    """(radius, length) mm from the typical face and cell: radius 12% of the median face's short side, between
+    MIN_RADIUS and DEFAULT_MAX_RADIUS; length 2 radii, at most 35% of the median cell depth, at least MIN_LENGTH;
+    rounded down to 0.1 mm. Faces too small for these get smaller pins of their own (place_joints)."""
     geo = _geo or _measure(tiling, fmap)
     if tiling.faces:
-        side = min(_face_side(tiling, geo, f) for f in tiling.faces)
-        depth = min(_center_len(geo, idx, f.axis) for f in tiling.faces for idx in (f.lower, f.upper))
+        side = float(np.median([_face_side(tiling, geo, f) for f in tiling.faces]))
+        depth = float(np.median([_center_len(geo, idx, f.axis) for f in tiling.faces for idx in (f.lower, f.upper)]))
     else:
         side = depth = min(_center_len(geo, idx, a) for idx in tiling.cells for a in range(3))
-    radius = max(_round_down(0.12 * side), 0.1)
-    length = max(_round_down(min(2.0 * radius, 0.35 * depth)), 0.1)
+    radius = min(max(_round_down(0.12 * side), MIN_RADIUS), DEFAULT_MAX_RADIUS)
+    length = max(_round_down(min(2.0 * radius, 0.35 * depth)), MIN_LENGTH)
     return radius, length
 
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Placement
-
-
-# The offset choices (k_b, k_c) of one axis, in steps of the separation: half steps let two joints sit either side
-# of a face's centre line.
-_KS = list(product((-1.0, -0.5, 0.0, 0.5, 1.0), repeat=2))
-_NK = len(_KS)
-_KCOST = np.array([(sum(x != 0 for x in k), sum(abs(x) for x in k)) for k in _KS])
 
 
 @dataclass(frozen=True)
@@ -266,144 +287,245 @@ class _Sizes:
     @property
     def reach(self):
         """Radius of the widest hole, mm."""
-        return self.radius * (SNAP_SWELL if self.shape == "snap" else 1.0) + self.clearance
+        return outer_radius(self.radius, self.shape) + self.clearance
 
     @property
     def wall(self):
-        return _wall(self.radius)
-
-    @property
-    def separation(self):
-        return 2.0 * self.reach + self.wall
+        return wall(self.radius)
 
     @property
     def hole_depth(self):
         return self.length + self.axial_clearance
 
-
-def _base_estimate(geo, n, sizes):
-    rho = 1.2 * sizes.reach
-    return max(0.5, 1.5 * geo.sag.get(n, 0.0) * rho ** 2 + 0.3)
+    def scaled(self, radius, length):
+        return _Sizes(float(radius), float(length), self.clearance, self.axial_clearance, self.style, self.shape)
 
 
-def _intrusions(tiling, geo, sizes):
-    """{cell: {(axis, side): (face number, mm reached into the cell)}}; side +1 = max face, -1 = min face."""
-    out = {idx: {} for idx in tiling.cells}
+@dataclass(frozen=True)
+class Layout:
+    """What place_joints decided: joints (tuple of Joint) and contacts (tuple of dict, one per shared face, in
+    tiling.faces order): pieces [lower, upper], axis, across_seam, room (a pin of the smallest size fits the face
+    alone), pinned, reason (why not, or None), radius_mm / length_mm of its joint; sizes: the asked (radius, length)
+    and the smallest (min_radius, min_length)."""
+
+    joints: tuple
+    contacts: tuple
+    sizes: dict = field(default_factory=dict)
+
+
+# Sample points on a face, as fractions along its two in-face axes; the centre first among equals.
+_S = np.linspace(0.08, 0.92, 13)
+_CAND = np.array([(sb, sc) for sb in _S for sc in _S])
+
+
+@dataclass(frozen=True, eq=False)
+class _FaceData:
+    """A face's sample points (k of them): fractions and parameters in both cells (k, 3), mm points x (k, 3), the
+    face normal nrm (k, 3) (+axis), the pin direction d (k, 3), cos (k,) between them, unit in-face tangents of each
+    cell {cell side: (k, 3, 3)} (row x: along axis x), line lengths {side: (k, 3)}, the face's bulge sag (k,) in mm
+    over a disc of the largest pin and usable (k,) where the face is not collapsed."""
+
+    n: int
+    face: object
+    fr: dict
+    uvw: dict
+    x: np.ndarray
+    nrm: np.ndarray
+    d: np.ndarray
+    cos: np.ndarray
+    tangents: dict
+    lens: dict
+    sag: np.ndarray
+    usable: np.ndarray
+    jac: dict
+
+
+def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
+    """_FaceData per face; faces_dirs {face number: unit mm direction lower -> upper} fixes the pin direction (a
+    split's), else the pin stands normal to the face at each point."""
+    out = []
+    orientation = int(getattr(fmap, "orientation", 1) or 1)
+    k = len(_CAND)
+    ring = np.stack([np.cos(np.arange(12) * np.pi / 6), np.sin(np.arange(12) * np.pi / 6)], axis=1)
+    per = []
     for n, f in enumerate(tiling.faces):
-        base = _base_estimate(geo, n, sizes)
-        out[f.lower][(f.axis, +1)] = (n, sizes.hole_depth if sizes.style == "dowel" else base)
-        out[f.upper][(f.axis, -1)] = (n, sizes.hole_depth)
+        a = f.axis
+        b, c = _cyclic(a)
+        low, up = tiling.cells[f.lower], tiling.cells[f.upper]
+        fr = np.empty((k, 3))
+        fr[:, a], fr[:, b], fr[:, c] = 1.0, _CAND[:, 0], _CAND[:, 1]
+        uvw = low.box[0] + fr * (low.box[1] - low.box[0])
+        if f.seam is not None:
+            uvw_up = np.asarray(f.seam.map_max_to_min(uvw), dtype=float)
+        else:
+            uvw_up = uvw.copy()
+            uvw_up[:, a] = up.box[0, a]
+        fr_up = (uvw_up - up.box[0]) / (up.box[1] - up.box[0])
+        per.append((f, fr, fr_up, uvw, uvw_up))
+    if not per:
+        return out
+    x, jac = fmap.evaluate_with_jacobian(np.concatenate([p[3] for p in per]))
+    _, jac_up = fmap.evaluate_with_jacobian(np.concatenate([p[4] for p in per]))
+    x, jac, jac_up = x.reshape(-1, k, 3), jac.reshape(-1, k, 3, 3), jac_up.reshape(-1, k, 3, 3)
+    nrms, rings = [], []
+    for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
+        a = f.axis
+        b, c = _cyclic(a)
+        j = jac[n]
+        nrm = np.cross(j[:, :, b], j[:, :, c])
+        det = np.einsum("ki,ki->k", j[:, :, a], nrm)
+        sign = np.where(np.abs(det) > 1e-12, np.sign(det), orientation)
+        size = np.linalg.norm(nrm, axis=1)
+        nrm = sign[:, None] * nrm / np.maximum(size, 1e-300)[:, None]
+        nrms.append((nrm, size > 1e-9 * max(float(size.max()), 1e-300)))
+        # a disc of the largest pin's footprint on the face, to measure how far the face bulges from its tangent plane
+        p = np.repeat(uvw[:, None, :], 12, axis=1)
+        for ax, col in ((b, 0), (c, 1)):
+            step = 1.2 * reach_max / np.maximum(np.linalg.norm(j[:, :, ax], axis=1), 1e-12)
+            p[:, :, ax] += ring[None, :, col] * step[:, None]
+        lo, hi = tiling.cells[f.lower].box
+        rings.append(np.clip(p, lo, hi).reshape(-1, 3))
+    xr = fmap.evaluate(np.concatenate(rings)).reshape(len(per), k, 12, 3)
+    for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
+        nrm, usable = nrms[n]
+        given = faces_dirs.get(n)
+        d = nrm.copy() if given is None else np.repeat(np.asarray(given, float)[None], k, axis=0)
+        cos = np.clip(np.einsum("ki,ki->k", d, nrm), -1.0, 1.0)
+        tangents = {}
+        for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
+            t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
+            tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
+        lens = {side: np.stack([_len_at(geo, idx, ax, frs) for ax in range(3)], axis=1)
+                for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
+        sag = np.max(np.abs(np.einsum("kri,ki->kr", xr[n] - x[n][:, None, :], d)), axis=1)
+        out.append(_FaceData(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, d, cos, tangents, lens,
+                             sag, usable & (cos > 1e-6), {-1: jac[n], +1: jac_up[n]}))
     return out
 
 
-def _length_problems(tiling, geo, sizes, intr):
-    """The pin-length fit: both intrusions along an axis plus a wall within the cell's depth."""
-    worst = None
-    for idx, slots in intr.items():
-        for a in range(3):
-            lo = slots.get((a, -1))
-            hi = slots.get((a, +1))
-            if lo is None and hi is None:
-                continue
-            need = (lo[1] if lo else 0.0) + (hi[1] if hi else 0.0) + sizes.wall
-            depth = _center_len(geo, idx, a)
-            if need > depth + 1e-9:
-                # what would fit: solve for the length with the other intrusions unchanged
-                holes = sum(1 for s, side in ((lo, -1), (hi, +1)) if s is not None
-                            and (side == -1 or sizes.style == "dowel"))
-                other = need - holes * sizes.hole_depth
-                best = (depth - other) / max(holes, 1) - sizes.axial_clearance
-                if worst is None or best < worst[0]:
-                    worst = (best, idx, a, depth)
-    if worst is None:
-        return []
-    best, idx, a, depth = worst
-    return [f"joints.length: a pin of length {sizes.length:g} does not fit piece {piece_id(idx)}, {depth:.1f} mm deep "
-            f"along {AXES[a]} (got {sizes.length:g}, expected at most {max(_round_down(best), 0.0):g})"]
+def _base(fd, s):
+    """How far a pin's base (k,) reaches back behind the face: past the face's bulge, and past its lean."""
+    cos = np.maximum(fd.cos, 1e-6)
+    tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / cos
+    return np.maximum(0.5, 1.5 * fd.sag + 0.3) + s.reach * tan
 
 
-def _face_fractions(tiling, f, ks, delta):
-    """For each offset choice k, the joint's fractions (3,) and parameters (3,) in the lower and in the upper cell."""
-    a = f.axis
+def _intrusion(fd, s, side):
+    """(depth (k,), way (+1 along d, -1 against it), radius) of the joint's part inside the cell on `side` (-1 lower,
+    +1 upper): a hole reaches in along d; a pin's base reaches back; a dowel's hole in the lower cell reaches back."""
+    if side == +1:
+        return np.full(len(fd.cos), s.hole_depth), +1, s.reach
+    if s.style == "dowel":
+        return np.full(len(fd.cos), s.hole_depth), -1, s.reach
+    return _base(fd, s), -1, s.radius
+
+
+def _fits(fd, s, lean=True, limit=True):
+    """(k,) bool: at size s the joint keeps a wall to every edge of the face in both cells (its footprint widened
+    by its lean, and shifted by it at the bottom of its hole) and a wall to each cell's far side; with lean the pin
+    also leans at most MAX_TILT_DEG unless limit is False (lean False measures the face alone: a pin normal to
+    it)."""
+    a = fd.face.axis
     b, c = _cyclic(a)
-    low = tiling.cells[f.lower]
-    up = tiling.cells[f.upper]
-    fr = np.empty((len(ks), 3))
-    fr[:, a] = 1.0
-    fr[:, b] = 0.5 + np.array([k[0] for k in ks]) * delta[b]
-    fr[:, c] = 0.5 + np.array([k[1] for k in ks]) * delta[c]
-    uvw = low.box[0] + fr * (low.box[1] - low.box[0])
-    if f.seam is not None:
-        uvw_up = np.asarray(f.seam.map_max_to_min(uvw), dtype=float)
-    else:
-        uvw_up = uvw.copy()
-        uvw_up[:, a] = up.box[0, a]
-    fr_up = (uvw_up - up.box[0]) / (up.box[1] - up.box[0])
-    return fr, fr_up, uvw, uvw_up
+    cos = np.maximum(fd.cos, 1e-6) if lean else np.ones_like(fd.cos)
+    sin = np.sqrt(np.maximum(1.0 - cos * cos, 0.0))
+    d = fd.d if lean else fd.nrm
+    ok = fd.usable.copy()
+    foot = s.reach / cos + s.wall
+    for side in (-1, +1):
+        depth, way, rho = _intrusion(fd, s, side)
+        fr, lens = fd.fr[side], fd.lens[side]
+        for x in (b, c):
+            shift = depth * way * np.einsum("ki,ki->k", d, fd.tangents[side][:, x])
+            ok &= (1.0 - fr[:, x]) * lens[:, x] >= foot + np.maximum(shift, 0.0) - 1e-9
+            ok &= fr[:, x] * lens[:, x] >= foot + np.maximum(-shift, 0.0) - 1e-9
+        ok &= lens[:, a] >= depth * cos + rho * sin + s.wall - 1e-9
+    if lean and limit:
+        ok &= fd.cos >= np.cos(np.radians(MAX_TILT_DEG)) - 1e-12
+    return ok
 
 
-def _search(tiling, geo, sizes, intr):
-    """The cheapest offset pattern {axis: (k_b, k_c)} under which all joints are apart, with every face's fractions
-    and parameters -> (pattern, {face number: (uvw_lower, uvw_upper)}) or None."""
-    reach, sep, wall = sizes.reach, sizes.separation, sizes.wall
-    fr_low, fr_up, uvws = {}, {}, {}
-    allowed = {a: np.ones(_NK, bool) for a in range(3)}
-    for n, f in enumerate(tiling.faces):
-        b, c = _cyclic(f.axis)
-        centre = np.full((1, 3), 0.5)
-        centre[0, f.axis] = 1.0
-        delta = np.zeros(3)
-        for x in (b, c):  # one offset step: the separation, in fractions of this face
-            delta[x] = sep / max(float(_len_at(geo, f.lower, x, centre)[0]), 1e-9)
-        fl, fu, ul, uu = _face_fractions(tiling, f, _KS, delta)
-        fr_low[n], fr_up[n], uvws[n] = fl, fu, (ul, uu)
-        for idx, fr in ((f.lower, fl), (f.upper, fu)):
-            for x in (b, c):
-                room = np.minimum(fr[:, x], 1.0 - fr[:, x]) * _len_at(geo, idx, x, fr)
-                allowed[f.axis] &= room >= reach + wall - 1e-9
-    # pair tables: ok[(a1, a2)][k1, k2] for a1 < a2, over every piece
-    ok = {pair: np.ones((_NK, _NK), bool) for pair in ((0, 1), (0, 2), (1, 2))}
-    for idx, slots in intr.items():
-        items = []
-        for (a, side), (n, depth) in slots.items():
-            fr = fr_low[n] if side == +1 else fr_up[n]
-            lens = np.stack([_len_at(geo, idx, x, fr) for x in range(3)], axis=1)  # (_NK, 3)
-            opposite = slots.get((a, -side))
-            # the piece's depth at this joint holds both intrusions of this axis and a wall
-            need = depth + (opposite[1] if opposite else 0.0) + wall
-            allowed[a] &= lens[:, a] >= need - 1e-9
-            items.append((a, side, fr, depth, lens))
-        for i in range(len(items)):
-            for j in range(i + 1, len(items)):
-                s1, s2 = items[i], items[j]
-                if s1[0] == s2[0]:
-                    continue
-                if s1[0] > s2[0]:
-                    s1, s2 = s2, s1
-                a1, a2 = s1[0], s2[0]
-                a3 = 3 - a1 - a2
-                span = np.minimum(s1[4][:, None, a3], s2[4][None, :, a3])
-                lateral = np.abs(s1[2][:, None, a3] - s2[2][None, :, a3]) * span >= sep - 1e-9
+def _room_score(fd):
+    """(k,) mm from the point to the nearest edge of the face over both cells, times the cosine of the lean: the
+    roomiest, straightest point first."""
+    a = fd.face.axis
+    b, c = _cyclic(a)
+    room = np.full(len(fd.cos), np.inf)
+    for side in (-1, +1):
+        fr, lens = fd.fr[side], fd.lens[side]
+        for x in (b, c):
+            room = np.minimum(room, np.minimum(fr[:, x], 1.0 - fr[:, x]) * lens[:, x])
+    return room * np.maximum(fd.cos, 0.0)
 
-                def clear(s, other, along_rows):
-                    a, side, _, depth, _ = s
-                    f_other = other[2][:, a]
-                    level = (f_other if side == -1 else 1.0 - f_other) * other[4][:, a]
-                    good = level - reach - wall >= depth - 1e-9  # (_NK,) over the other's k
-                    return good[None, :] if along_rows else good[:, None]
 
-                ok[(a1, a2)] &= lateral | clear(s1, s2, True) | clear(s2, s1, False)
-    feasible = (allowed[0][:, None, None] & allowed[1][None, :, None] & allowed[2][None, None, :]
-                & ok[(0, 1)][:, :, None] & ok[(0, 2)][:, None, :] & ok[(1, 2)][None, :, :])
-    if not feasible.any():
-        return None
-    ks = np.argwhere(feasible)
-    cost = _KCOST[ks].sum(axis=1)  # (n, 2): offsets used, then their size
-    best = ks[np.lexsort((cost[:, 1], cost[:, 0]))[0]]
-    k = best
-    pattern = {a: _KS[k[a]] for a in range(3)}
-    placed = {n: (uvws[n][0][k[f.axis]], uvws[n][1][k[f.axis]]) for n, f in enumerate(tiling.faces)}
-    return pattern, placed
+def _segments(fd, s, side):
+    """The joint's cylinder inside the cell on `side`: from points p0 (k, 3) to p1 (k, 3), radius rho."""
+    depth, way, rho = _intrusion(fd, s, side)
+    p1 = fd.x + (way * depth)[:, None] * fd.d
+    return fd.x, p1, rho
+
+
+def _apart(p0, p1, rp, q0, q1, rq, gap):
+    """(k,) bool: cylinders of axes p0 -> p1 (k, 3) radius rp and q0 -> q1 (3,) radius rq are at least gap apart:
+    their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the other."""
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = np.einsum("ki,ki->k", d1, d1)
+    e = float(d2 @ d2)
+    f = r @ d2
+    c = np.einsum("ki,ki->k", d1, r)
+    bb = d1 @ d2
+    denom = a * e - bb * bb
+    s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
+    t = (bb * s + f) / e
+    s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.linalg.norm(p0 + d1 * s[:, None] - (q0 + d2 * t[:, None]), axis=1)
+    ok = dist >= rp + rq + gap - 1e-9
+    u1 = d1 / np.sqrt(a)[:, None]
+    u2 = d2 / np.sqrt(e)
+    cs = np.clip(u1 @ u2, -1.0, 1.0)
+    sn = np.sqrt(1.0 - cs * cs)
+    # q beyond an end plane of p
+    q_lo = np.minimum(u1 @ q0, u1 @ q1) - rq * sn
+    q_hi = np.maximum(u1 @ q0, u1 @ q1) + rq * sn
+    p_lo = np.minimum(np.einsum("ki,ki->k", u1, p0), np.einsum("ki,ki->k", u1, p1))
+    p_hi = np.maximum(np.einsum("ki,ki->k", u1, p0), np.einsum("ki,ki->k", u1, p1))
+    ok |= (q_lo >= p_hi + gap - 1e-9) | (q_hi <= p_lo - gap + 1e-9)
+    # p beyond an end plane of q
+    pp0, pp1 = p0 @ u2, p1 @ u2
+    lo2 = np.minimum(pp0, pp1) - rp * sn
+    hi2 = np.maximum(pp0, pp1) + rp * sn
+    ok |= (lo2 >= max(q0 @ u2, q1 @ u2) + gap - 1e-9) | (hi2 <= min(q0 @ u2, q1 @ u2) - gap + 1e-9)
+    return ok
+
+
+def _size_steps(sizes, r_min, l_min):
+    """The sizes a face tries, largest first: the asked one, then radii 15% smaller each down to r_min, the length
+    shrinking with the radius down to l_min."""
+    out = [sizes]
+    r = sizes.radius
+    while r > r_min + 1e-9:
+        r = max(r_min, _round_down(r * 0.85, 0.05))
+        length = max(l_min, _round_down(sizes.length * r / sizes.radius, 0.05))
+        out.append(sizes.scaled(r, min(length, sizes.length)))
+    return out
+
+
+def _largest_fit(fd, sizes, r_hi, l_min, lean=False):
+    """Largest radius (0.1 mm steps) below r_hi at which some point of the face fits alone, with length l_min;
+    0 if none."""
+    def fits(r):
+        return bool(_fits(fd, sizes.scaled(r, l_min), lean).any())
+
+    if not fits(0.1):
+        return 0.0
+    lo, hi = 0.1, r_hi
+    for _ in range(12):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return _round_down(lo)
 
 
 def _spec_value(spec, name, default):
@@ -411,135 +533,272 @@ def _spec_value(spec, name, default):
     return default if v is None else v
 
 
-def _sizes_from(spec, radius, length):
-    return _Sizes(float(radius), float(length), float(_spec_value(spec, "clearance", DEFAULT_CLEARANCE)),
-                  float(_spec_value(spec, "axial_clearance", DEFAULT_AXIAL_CLEARANCE)),
-                  str(_spec_value(spec, "style", "pin")), str(_spec_value(spec, "shape", "cylinder")))
+def _split_dirs(tiling, fmap, plan):
+    """{face number: unit mm direction from its lower to its upper cell} along the sliding direction of the one
+    split of the plan that parts the face's two cells."""
+    from .assembly import split_directions
+
+    out = {}
+    for (d, _), step in zip(split_directions(tiling, fmap, plan), plan.steps):
+        if not np.any(d):
+            continue
+        mv, fx = set(step.moving), set(step.fixed)
+        for n, f in enumerate(tiling.faces):
+            lo, up = tuple(f.lower), tuple(f.upper)
+            if (lo in mv and up in fx) or (lo in fx and up in mv):
+                out[n] = d if up in mv else -d
+    return out
 
 
-def _largest_radius(tiling, geo, sizes, hi):
-    """Largest radius (0.1 mm steps) that can be placed, the other sizes fixed; 0 if none."""
-    def fits(r):
-        s = _Sizes(r, sizes.length, sizes.clearance, sizes.axial_clearance, sizes.style, sizes.shape)
-        intr = _intrusions(tiling, geo, s)
-        return not _length_problems(tiling, geo, s, intr) and _search(tiling, geo, s, intr) is not None
+def place_joints(tiling, fmap, joint_spec=None, plan=None):
+    """A joint on every shared face with room for one -> Layout (joints, one contact record per face).
 
-    lo = 0.0
-    if not fits(0.1):
-        return 0.0
-    lo = 0.1
-    for _ in range(14):
-        mid = 0.5 * (lo + hi)
-        if fits(mid):
-            lo = mid
-        else:
-            hi = mid
-    return _round_down(lo)
-
-
-def plan_joints(tiling, fmap, joint_spec=None):
-    """One Joint per shared face (also across periodic seams), pins on the lower cell; [] for style none.
-
-    joint_spec: any object with style, shape, radius, length, clearance, axial_clearance, space (None = defaults).
-    Raises SpecError naming the key, the value and what would fit when a pin is too wide for a face or too long
-    for a piece.
+    joint_spec: any object with style, shape, radius, length, clearance, axial_clearance, space and optionally
+    min_radius, min_length (None = defaults); plan: volpuzzle.assembly.AssemblyPlan, whose splits set the pins'
+    directions and whose faces are placed first (None: pins normal to their faces). Raises SpecError for sizes that
+    are not positive; a face without room is not an error here (see require_joined).
     """
     style = str(_spec_value(joint_spec, "style", "pin"))
     if style == "none" or not tiling.faces:
-        return []
+        return Layout((), tuple(_contact(f, False, None, "joints.style is none" if style == "none" else None)
+                                for f in tiling.faces))
     space = str(_spec_value(joint_spec, "space", "physical"))
     geo = _measure(tiling, fmap)
     r_given = getattr(joint_spec, "radius", None) if joint_spec is not None else None
     l_given = getattr(joint_spec, "length", None) if joint_spec is not None else None
     r_def, l_def = default_sizes(tiling, fmap, geo)
-    sizes = _sizes_from(joint_spec, r_def if r_given is None else r_given, l_def if l_given is None else l_given)
+    sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
+                   float(_spec_value(joint_spec, "clearance", DEFAULT_CLEARANCE)),
+                   float(_spec_value(joint_spec, "axial_clearance", DEFAULT_AXIAL_CLEARANCE)),
+                   style, str(_spec_value(joint_spec, "shape", "cylinder")))
+    r_min = float(_spec_value(joint_spec, "min_radius", MIN_RADIUS))
+    l_min = float(_spec_value(joint_spec, "min_length", MIN_LENGTH))
     problems = []
     for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
-                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12)):
+                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
+                        ("min_radius", r_min, 0.0), ("min_length", l_min, 0.0)):
         if not np.isfinite(v) or v <= low:
             problems.append(f"joints.{key}: must be {'positive' if low == 0 else 'zero or more'} (got {v:g})")
     if problems:
         raise SpecError(problems)
+    # never shrink below what was asked, when that is smaller than the minimum
+    r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
 
-    if r_given is not None:
-        # A pin wider than its face is the real mistake; say so before any length fit derived from it.
-        f = min(tiling.faces, key=lambda f: _face_side(tiling, geo, f))
-        side = _face_side(tiling, geo, f)
-        if sizes.radius + sizes.clearance >= 0.5 * side:
-            r_max = _largest_radius(tiling, geo, sizes, 0.5 * side)
-            raise SpecError(
-                f"joints.radius: a pin of radius {sizes.radius:g} does not fit the face between {piece_id(f.lower)} "
-                f"and {piece_id(f.upper)}, {side:.1f} mm across (got {sizes.radius:g}, expected at most {r_max:g})")
-    intr = _intrusions(tiling, geo, sizes)
-    if l_given is None:
-        # a derived length shrinks to what the thinnest piece holds
-        while _length_problems(tiling, geo, sizes, intr) and sizes.length > 0.15:
-            sizes = _Sizes(sizes.radius, _round_down(sizes.length * 0.9), sizes.clearance, sizes.axial_clearance,
-                           sizes.style, sizes.shape)
-            intr = _intrusions(tiling, geo, sizes)
-    problems = _length_problems(tiling, geo, sizes, intr)
-    if problems:
-        raise SpecError(problems)
-    found = _search(tiling, geo, sizes, intr)
-    if found is None:
-        r_max = _largest_radius(tiling, geo, sizes, sizes.radius)
-        if r_given is None and r_max > 0:
-            sizes = _Sizes(r_max, sizes.length, sizes.clearance, sizes.axial_clearance, sizes.style, sizes.shape)
-            intr = _intrusions(tiling, geo, sizes)
-            found = _search(tiling, geo, sizes, intr)
-        if found is None:
-            f = min(tiling.faces, key=lambda f: _face_side(tiling, geo, f))
-            raise SpecError(
-                f"joints.radius: a pin of radius {sizes.radius:g} does not fit the face between {piece_id(f.lower)} "
-                f"and {piece_id(f.upper)} (got {sizes.radius:g}, expected at most {r_max:g})")
-    _, placed = found
+    dirs = _split_dirs(tiling, fmap, plan) if plan is not None else {}
+    data = _face_data(tiling, fmap, geo, dirs, sizes.reach)
+    steps = _size_steps(sizes, r_min, l_min)
+    first = {n for n, _ in plan.faces_with_joints} if plan is not None else set()
+    smallest = steps[-1]
+    alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
+    order = sorted(range(len(data)), key=lambda n: (n not in first, alone[n], n))
+    cells = list(tiling.cells)
+    chosen = _greedy(data, steps, order, cells)
+    for _ in range(4):
+        # a face that shrank or got nothing goes first next time, kept if the puzzle is better for it
+        late = [n for n in order if n not in chosen or chosen[n][1] is not sizes]
+        if not late:
+            break
+        order = sorted(order, key=lambda n: n not in late)
+        again = _greedy(data, steps, order, cells)
+        if _cost(again, sizes, data, cells) >= _cost(chosen, sizes, data, cells):
+            break
+        chosen = again
 
-    joints = []
-    faces = list(tiling.faces)
-    uvw_low = np.array([placed[n][0] for n in range(len(faces))])
-    uvw_up = np.array([placed[n][1] for n in range(len(faces))])
-    x0, jac = fmap.evaluate_with_jacobian(uvw_low)
-    orientation = int(getattr(fmap, "orientation", 1) or 1)
-    dirs = []
-    for n, f in enumerate(faces):
-        a = f.axis
-        b, c = _cyclic(a)
-        j = jac[n]
-        nrm = np.cross(j[:, b], j[:, c])
-        det = float(np.dot(j[:, a], nrm))
-        # det > 0 means J_b x J_c already points along +a; a left-handed map turns it round
-        sign = np.sign(det) if abs(det) > 1e-12 else orientation
-        nrm = sign * nrm / max(np.linalg.norm(nrm), 1e-300)
-        dirs.append(nrm)
-    bases = _actual_bases(fmap, faces, uvw_low, x0, jac, dirs, sizes, geo)
-    _, jac_up = fmap.evaluate_with_jacobian(uvw_up)
-    for n, f in enumerate(faces):
-        joints.append(Joint(
+    joints, contacts = [], []
+    for n, fd in enumerate(data):
+        f = fd.face
+        room = bool(_fits(fd, smallest, lean=False).any())
+        if n not in chosen:
+            contacts.append(_contact(f, room, None, _why_not(fd, sizes, smallest, room, r_min, l_min)))
+            continue
+        k, s = chosen[n]
+        base = float(_base(fd, s)[k])
+        cos = float(fd.cos[k])
+        j = Joint(
             pin_cell=tuple(f.lower), hole_cell=tuple(f.upper), axis=f.axis, across_seam=f.seam is not None,
-            center=_readonly(x0[n]), direction=_readonly(dirs[n]), radius=sizes.radius, length=sizes.length,
-            clearance=sizes.clearance, axial_clearance=sizes.axial_clearance, shape=sizes.shape, style=sizes.style,
-            space=space, uvw_pin=_readonly(uvw_low[n]), uvw_hole=_readonly(uvw_up[n]), base_depth=bases[n],
-            jacobian_pin=_readonly(jac[n]), jacobian_hole=_readonly(jac_up[n])))
-    return joints
+            center=_readonly(fd.x[k]), direction=_readonly(fd.d[k] / np.linalg.norm(fd.d[k])), radius=s.radius,
+            length=s.length, clearance=s.clearance, axial_clearance=s.axial_clearance, shape=s.shape, style=s.style,
+            space=space, uvw_pin=_readonly(fd.uvw[-1][k]), uvw_hole=_readonly(fd.uvw[+1][k]),
+            base_depth=round(base, 4), jacobian_pin=_readonly(fd.jac[-1][k]), jacobian_hole=_readonly(fd.jac[+1][k]),
+            tilt_deg=float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+            shrunk=bool(s.radius < sizes.radius or s.length < sizes.length))
+        joints.append(j)
+        contacts.append(_contact(f, True, j, None))
+    return Layout(tuple(joints), tuple(contacts),
+                  {"radius_mm": sizes.radius, "length_mm": sizes.length, "min_radius_mm": r_min,
+                   "min_length_mm": l_min})
 
 
-def _actual_bases(fmap, faces, uvw, x0, jac, dirs, sizes, geo):
-    """base_depth per joint: the face's bulge over the pin's disc at the joint itself, at least the estimate."""
-    rho = 1.2 * sizes.reach
-    ring = np.stack([np.cos(np.arange(12) * np.pi / 6), np.sin(np.arange(12) * np.pi / 6)], axis=1)
-    pts = []
-    for n, f in enumerate(faces):
-        b, c = _cyclic(f.axis)
-        p = np.repeat(uvw[n][None], 12, axis=0)
-        p[:, b] += ring[:, 0] * rho / max(np.linalg.norm(jac[n][:, b]), 1e-12)
-        p[:, c] += ring[:, 1] * rho / max(np.linalg.norm(jac[n][:, c]), 1e-12)
-        pts.append(p)
-    xr = fmap.evaluate(np.concatenate(pts)).reshape(len(faces), 12, 3)
-    out = []
-    for n in range(len(faces)):
-        sag = float(np.max(np.abs((xr[n] - x0[n]) @ dirs[n])))
-        out.append(round(max(_base_estimate(geo, n, sizes), 1.5 * sag + 0.3), 4))
+def _greedy(data, steps, order, cells):
+    """Faces in `order`, each at its roomiest point that fits and keeps a wall to the joints already placed in its two
+    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}."""
+    inside = {idx: [] for idx in cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
+    chosen = {}
+    for n in order:
+        fd = data[n]
+        score = _room_score(fd)
+        for s in steps:
+            ok = _fits(fd, s)
+            if not ok.any():
+                continue
+            segs = {side: _segments(fd, s, side) for side in (-1, +1)}
+            for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
+                p0, p1, rp = segs[side]
+                for q0, q1, rq in inside[idx]:
+                    ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
+                    if not ok.any():
+                        break
+            if ok.any():
+                k = int(np.argmax(np.where(ok, score, -np.inf)))
+                chosen[n] = (k, s)
+                for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
+                    p0, p1, rp = segs[side]
+                    inside[idx].append((p0[k].copy(), p1[k].copy(), rp))
+                break
+    return chosen
+
+
+def _cost(chosen, sizes, data, cells):
+    """(parts of the joint graph and loose cells, faces without a joint, faces with a smaller one, mm of radius
+    given up): less is better."""
+    parts, loose = joint_graph(cells, [(data[n].face.lower, data[n].face.upper) for n in chosen])
+    small = [s for _, s in chosen.values() if s is not sizes]
+    return (len(parts) + len(loose), len(data) - len(chosen), len(small),
+            round(sum(sizes.radius - s.radius for s in small), 6))
+
+
+def _why_not(fd, sizes, smallest, room, r_min, l_min):
+    """One sentence: why face fd carries no joint."""
+    if not fd.usable.any():
+        return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
+    if not room:
+        best = _largest_fit(fd, smallest, r_min, l_min)
+        return (f"no room: the face holds a pin of radius at most {best:g} mm with its clearance and wall, less "
+                f"than the smallest allowed, {r_min:g} mm and {l_min:g} mm long")
+    if not _fits(fd, smallest).any():
+        leaning = _fits(fd, smallest, limit=False)
+        if not leaning.any():
+            lean = float(np.degrees(np.arccos(np.clip(fd.cos[fd.usable].max(), -1.0, 1.0))))
+            return (f"tilt: its split slides {np.floor(lean * 10) / 10:g} deg or more off the face's normal, and a pin "
+                    f"leaning that far needs more room than the face has")
+        lean = float(np.degrees(np.arccos(np.clip(fd.cos[leaning].max(), -1.0, 1.0))))
+        return (f"tilt: its split slides at least {np.floor(lean * 10) / 10:g} deg off the face's normal where a pin "
+                f"fits, more than the {MAX_TILT_DEG:g} deg a straight pin may lean")
+    return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "
+            f"{piece_id(fd.face.upper)}")
+
+
+def _contact(f, room, joint, reason):
+    out = {"pieces": [piece_id(f.lower), piece_id(f.upper)], "axis": AXES[f.axis],
+           "across_seam": f.seam is not None, "room": bool(room), "pinned": joint is not None, "reason": reason}
+    if joint is not None:
+        out["radius_mm"] = float(joint.radius)
+        out["length_mm"] = float(joint.length)
     return out
+
+
+def plan_joints(tiling, fmap, joint_spec=None, plan=None):
+    """The joints of place_joints (list of Joint): one on every face with room, pins on the lower cell; [] for style
+    none."""
+    return list(place_joints(tiling, fmap, joint_spec, plan).joints)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The joint graph: pieces as nodes, joints as edges
+
+
+def joint_graph(piece_ids, edges):
+    """piece_ids: iterable of ids; edges: iterable of (id, id) -> (parts: list of sorted id lists, largest first;
+    loose: sorted ids with no joint)."""
+    ids = sorted(set(piece_ids))
+    parent = {p: p for p in ids}
+
+    def root(p):
+        while parent[p] != p:
+            parent[p] = parent[parent[p]]
+            p = parent[p]
+        return p
+
+    touched = set()
+    for a, b in edges:
+        if a in parent and b in parent:
+            parent[root(a)] = root(b)
+            touched |= {a, b}
+    groups = {}
+    for p in ids:
+        groups.setdefault(root(p), []).append(p)
+    parts = sorted(groups.values(), key=lambda g: (-len(g), g))
+    return parts, sorted(set(ids) - touched)
+
+
+def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=None):
+    """One line saying why the puzzle does not hold together (a piece without a joint, or more than one part), with
+    what would fit; None when it holds, for style none, or when joints.allow has 'loose'. contacts: report records
+    (Layout.contacts) whose reasons explain it."""
+    if style == "none" or "loose" in tuple(allow):
+        return None
+    ids = sorted(set(piece_ids))
+    if len(ids) < 2:
+        return None
+    parts, loose = joint_graph(ids, edges)
+    if not loose and len(parts) == 1:
+        return None
+    stray = loose[:1] or parts[-1]
+    mine = [c for c in contacts if set(c.get("pieces", ())) & set(stray)
+            and not set(c.get("pieces", ())) <= set(stray) and not c.get("pinned")]
+    reasons = [c.get("reason") or "" for c in mine]
+    advice = "a coarser grid, or joints.allow: [loose]"
+    if any(r.startswith("no room") for r in reasons):
+        best = max(float(r.split("at most ")[1].split(" mm")[0]) for r in reasons if r.startswith("no room"))
+        advice = (f"joints.min_radius at most {best:g} there, " if best > 0 else "") + advice
+    elif any(r.startswith("crowded") for r in reasons):
+        advice = "a smaller joints.radius, " + advice
+    elif any(r.startswith("tilt") for r in reasons):
+        # smaller blocks have flatter splits; a bumpy warp tilts them further
+        advice = "more pieces along the curved axis or a smaller randomize.amplitude, or joints.allow: [loose]"
+    why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
+               "no joint was placed on its contacts")
+    got = f"grid {list(grid)}" if grid is not None else f"{len(parts)} parts"
+    if loose:
+        head = f"joints: piece {stray[0]} gets no joint" + (f" (and {len(loose) - 1} more)" if len(loose) > 1 else "")
+    else:
+        shown = ", ".join(stray[:4]) + (", ..." if len(stray) > 4 else "")
+        head = f"joints: the puzzle falls apart into {len(parts)} parts ({shown} hold to the rest by no joint)"
+    return f"{head}; {why} (got {got}, expected {advice})"
+
+
+def require_joined(tiling, layout, joint_spec=None):
+    """Raise SpecError (one line) unless every cell has a joint and the joints join all cells into one part; style
+    none and joints.allow: [loose] excepted."""
+    problem = graph_problem([piece_id(c) for c in tiling.cells],
+                            [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in layout.joints],
+                            layout.contacts, str(_spec_value(joint_spec, "style", "pin")),
+                            tuple(_spec_value(joint_spec, "allow", ())), tiling.grid)
+    if problem:
+        raise SpecError(problem)
+
+
+def report_figures(report):
+    """The joint figures of a build's report dict: touching pairs, with room, pinned, loose pieces, joint-graph parts,
+    largest and smallest piece volume (mm^3). Touching pairs and room are None when the report lists no contacts."""
+    pieces = report.get("pieces") or []
+    ids = [p.get("id") for p in pieces]
+    joints = report.get("joints") or []
+    parts, loose = joint_graph(ids, [(j.get("pin_piece"), j.get("hole_piece")) for j in joints])
+    contacts = report.get("contacts")
+    vols = [float(p["volume_mm3"]) for p in pieces if p.get("volume_mm3") is not None]
+    return {
+        "pieces": len(ids),
+        "touching_pairs": None if contacts is None else len(contacts),
+        "with_room": None if contacts is None else sum(1 for c in contacts if c.get("room")),
+        "pinned": None if contacts is None else sum(1 for c in contacts if c.get("pinned")),
+        "pinned_with_room": None if contacts is None else sum(1 for c in contacts if c.get("room") and c.get("pinned")),
+        "joints": len(joints),
+        "pieces_without_joint": loose,
+        "parts": len(parts),
+        "largest_volume_mm3": max(vols) if vols else None,
+        "smallest_volume_mm3": min(vols) if vols else None,
+    }
 
 
 # ---------------------------------------------------------------------------------------------------------------------

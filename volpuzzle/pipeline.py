@@ -1,6 +1,5 @@
 """Runs the stages in order: spec -> model -> tile -> joint -> randomize -> verify -> compose -> check -> export."""
 
-import math
 import os
 import sys
 import time
@@ -148,7 +147,7 @@ def prepare(spec, timer=None, progress=None):
     from .limits import check_model_limits, check_spec_limits
 
     check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
-    from .joint import plan_joints
+    from .joint import place_joints, require_joined
     from .mapping import Map
     from .randomize import family_from_spec
     from .spline.measure import volume as volume_of
@@ -183,18 +182,22 @@ def prepare(spec, timer=None, progress=None):
             mass = mesh_mass(fmap, model.mesh)
         tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
     _check_grid_vs_tolerance(spec, tiling, fmap)
-    plan = None
-    with timer("joint", progress):
-        # In mesh mode the joints and their plan of splits go on the contacts of the final pieces (meshcut), known
-        # only after composing.
-        joints = plan_joints(tiling, fmap, spec.joints) if model.mesh is None else []
-        if joints:
-            from .assembly import plan_assembly, reorient_joints, select_joints
+    plan, joints, contacts = None, [], None
+    # In mesh mode the joints and their plan go on the contacts of the final pieces, known only after composing.
+    if model.mesh is None:
+        with timer("joint", progress):
+            if spec.joints.style != "none" and tiling.faces:
+                from .assembly import plan_assembly, with_joints
 
-            # With straight pins and bumpy cut faces a jointed face can only part along its pins, so the joints
-            # follow a plan of splits (blocks that slide apart) and every pin of a split shares its direction.
-            plan = plan_assembly(tiling, fmap)
-            joints = reorient_joints(select_joints(joints, tiling, plan), tiling, fmap, plan)
+                # With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly
+                # is planned first (blocks that slide apart) and every pin of a split points along its sliding
+                # direction.
+                plan = plan_assembly(tiling, fmap)
+            layout = place_joints(tiling, fmap, spec.joints, plan)
+            joints, contacts = list(layout.joints), list(layout.contacts)
+            if plan is not None:
+                plan = with_joints(plan, tiling, joints)
+            require_joined(tiling, layout, spec.joints)
     from .spline.measure import bbox
 
     if model.mesh is not None:
@@ -213,16 +216,14 @@ def prepare(spec, timer=None, progress=None):
         **model.info,
     }
     return {"model": model, "tiling": tiling, "fmap": fmap, "joints": joints, "plan": plan,
-            "model_report": model_report, "randomize_report": rand_report}
+            "contacts": contacts, "model_report": model_report, "randomize_report": rand_report}
 
 
 def joint_gap_volume(joint):
-    """mm^3 the joint leaves empty between its pieces: hole volume beyond the face less the pin (or dowel) volume."""
-    r, c, length, ac = joint.radius, joint.clearance, joint.length, joint.axial_clearance
-    hole = math.pi * (r + c) ** 2 * (length + ac)
-    if joint.style == "dowel":
-        return 2 * hole
-    return hole - math.pi * r ** 2 * length
+    """mm^3 the joint leaves empty between its pieces (volpuzzle.joint.gap_volume)."""
+    from .joint import gap_volume
+
+    return gap_volume(joint)
 
 
 def _check_plate(spec, tiling, fmap):
@@ -262,6 +263,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     from .check import assert_passed, check_pieces
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
+    from .joint import piece_joints_report
     from .spec import load_spec, spec_to_dict, with_overrides
 
     progress = progress if progress is not None else Progress()
@@ -306,6 +308,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             # Chords inside a convex surface lose volume in proportion to the chord error. The user's tolerance is
             # an upper bound, so tessellating finer still honours it while making the volumes add up.
             tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
+    _require_joined(spec, pieces, joints, stages.get("contacts") or ())
     checks["joint_gaps_mm3"] = round(gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
@@ -319,7 +322,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         from .joint import dowel_solid
 
         dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
-    assembly = _assembly(stages["plan"], pieces, joints, timer, progress)
+    assembly = _assembly(stages["plan"], pieces, joints, timer, progress, allow=spec.joints.allow,
+                         randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
     with timer("layout", progress):
@@ -331,6 +335,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
         entry["plate"] = plate_of.get(p.id)
         entry["label"] = labels.get(p.id)
+        entry["joints"] = piece_joints_report(joints, p.cell)
         entries.append(entry)
     report = {
         "volpuzzle_version": __version__,
@@ -339,6 +344,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "randomize": stages["randomize_report"],
         "pieces": entries,
         "joints": [j.to_report() for j in joints],
+        "contacts": stages.get("contacts"),
         "checks": checks,
         "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
         "assembly_order": assembly.pop("assembly_order"),
@@ -356,8 +362,19 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     return report
 
 
-def _assembly(plan, pieces, joints, timer, progress):
-    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck"""
+def _require_joined(spec, pieces, joints, contacts):
+    """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
+    from .joint import graph_problem, piece_id
+
+    problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
+                            contacts or (), spec.joints.style, spec.joints.allow, spec.grid)
+    if problem:
+        raise SpecError(problem, source=spec.source)
+
+
+def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False):
+    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck.
+    A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
     from .assembly import steps_in_words, verify_disassembly
 
     if plan is None:
@@ -365,8 +382,14 @@ def _assembly(plan, pieces, joints, timer, progress):
     with timer("assembly", progress):
         res = verify_disassembly(pieces, joints, plan)
     if res["welded"]:
-        print(f"warning: the puzzle is welded: {', '.join(res['stuck'])} cannot be taken out along their pins",
-              file=sys.stderr)
+        stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
+        if "welded" not in tuple(allow):
+            tries = "another grid (more pieces along a curved axis)" + (
+                ", a smaller randomize.amplitude, another randomize.seed" if randomized else "")
+            raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
+                                f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "
+                                f"joints.allow: [welded])")
+        print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
@@ -444,7 +467,9 @@ def _label(spec, stages, pieces, joints, timer, progress):
 
 def pin_triangles(pieces, joints):
     """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
-    radius (a snap pin swells by 15%) and length. For the second (pin) material of 3MF files."""
+    outer radius (a snap pin swells) and length. For the second (pin) material of 3MF files."""
+    from .joint import outer_radius
+
     out = {}
     for p in pieces:
         mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
@@ -457,7 +482,7 @@ def pin_triangles(pieces, joints):
             rel = c - np.asarray(j.center, float)
             t = rel @ d
             radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
-            reach = j.radius * (1.2 if j.shape == "snap" else 1.0) + 1e-3
+            reach = outer_radius(j.radius, j.shape) + 1e-3
             flag |= ((t > 1e-3) & (t <= j.length + 1e-3) & (radial <= reach)).astype(np.uint8)
         out[p.id] = flag
     return out

@@ -37,6 +37,7 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 NURBS_SUFFIXES = (".json", ".xml", ".itd")
 CAGE_TYPES = ("box", "cylinder", "sphere")
 JOINT_STYLES = ("pin", "dowel", "none")
+JOINT_ALLOW = ("loose", "welded")
 JOINT_SHAPES = ("cylinder", "snap")
 JOINT_SPACES = ("physical", "domain")
 FORMATS = ("stl", "3mf")
@@ -52,7 +53,8 @@ _TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints
 _MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair")
 _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
-_JOINT_KEYS = ("style", "shape", "radius", "length", "clearance", "axial_clearance", "space")
+_JOINT_KEYS = ("style", "shape", "radius", "length", "clearance", "axial_clearance", "space", "min_radius",
+               "min_length", "allow")
 _OUTPUT_KEYS = ("directory", "format", "tolerance", "plate", "spacing", "labels")
 
 
@@ -104,6 +106,9 @@ class JointSpec:
     clearance: float = 0.15
     axial_clearance: float = 0.3
     space: str = "physical"
+    min_radius: float = 1.0
+    min_length: float = 3.0
+    allow: tuple = ()  # of JOINT_ALLOW: pieces without a joint ("loose") or that cannot come out ("welded")
 
 
 @dataclass(frozen=True)
@@ -579,9 +584,30 @@ class _Checker:
         if clearance is not None and radius is not None and clearance >= radius:
             self.bad("joints.clearance", "not smaller than the pin radius", _show(j.get("clearance", d.clearance)),
                      f">= 0 and < joints.radius = {_num(radius)}; or a radius > {_num(clearance)}")
+        min_radius = self.number("joints.min_radius", j.get("min_radius", d.min_radius), above=0)
+        min_length = self.number("joints.min_length", j.get("min_length", d.min_length), above=0)
+        allow = self.allow(j.get("allow"))
         return JointSpec(style=style or d.style, shape=shape or d.shape, radius=radius, length=length,
                          clearance=d.clearance if clearance is None else clearance,
-                         axial_clearance=d.axial_clearance if axial is None else axial, space=space or d.space)
+                         axial_clearance=d.axial_clearance if axial is None else axial, space=space or d.space,
+                         min_radius=d.min_radius if min_radius is None else min_radius,
+                         min_length=d.min_length if min_length is None else min_length, allow=allow)
+
+    def allow(self, value):
+        """joints.allow: a list of JOINT_ALLOW words (or one word) -> sorted tuple."""
+        if value is None:
+            return ()
+        items = [value] if isinstance(value, str) else value
+        if not isinstance(items, (list, tuple)):
+            self.bad("joints.allow", "not a list", _show(value), f"a list of {', '.join(JOINT_ALLOW)}, e.g. [loose]")
+            return ()
+        out = []
+        for i, item in enumerate(items):
+            if item not in JOINT_ALLOW:
+                self.bad(_path_join("joints.allow", i), "unknown", _show(item), f"one of {', '.join(JOINT_ALLOW)}")
+            elif item not in out:
+                out.append(item)
+        return tuple(sorted(out))
 
     def output(self, value, name):
         o = self.mapping("output", value, _OUTPUT_KEYS)
@@ -832,7 +858,8 @@ def spec_to_dict(spec: Spec) -> dict:
         "randomize": None if r is None else {"seed": r.seed, "amplitude": r.amplitude,
                                              "control_points": r.control_points},
         "joints": {"style": j.style, "shape": j.shape, "radius": j.radius, "length": j.length,
-                   "clearance": j.clearance, "axial_clearance": j.axial_clearance, "space": j.space},
+                   "clearance": j.clearance, "axial_clearance": j.axial_clearance, "space": j.space,
+                   "min_radius": j.min_radius, "min_length": j.min_length, "allow": list(j.allow)},
         "output": {"directory": None if o.directory is None else str(o.directory), "format": o.format,
                    "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels},
     }
