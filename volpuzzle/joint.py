@@ -56,7 +56,6 @@ def wall(radius):
     return max(0.8, 0.4 * radius)
 
 
-_wall = wall  # the older private name, still imported elsewhere
 
 
 def outer_radius(radius, shape):

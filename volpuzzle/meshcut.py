@@ -23,14 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
            "joint_graph_problem", "plan_splits", "compose_in_mesh"]
 
-MIN_RADIUS = 1.0  # mm: the smallest pin a pin may shrink to (a 2 mm pin prints on a 0.4 mm nozzle)
-MIN_LENGTH = 3.0  # mm: the shortest pin that still holds a piece in place
-MAX_TILT_DEG = 30.0  # a straight pin may stand this far off its face's normal: the hole's mouth is then 1.15x as
-# long as wide, and the pin's base reaches r tan(30) = 0.58 r deeper to stay attached, still printable
 MAX_PINS = 3  # pins and holes per piece, as in the paper
 _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
@@ -267,17 +264,9 @@ class PinSize:
     min_length: float = MIN_LENGTH
 
 
-def _wall(radius):
-    from .joint import _wall as joint_wall
-
-    return joint_wall(radius)
-
-
 def _reach(size, radius):
     """Radius of the hole a pin of `radius` makes (a snap pin swells)."""
-    from .joint import SNAP_SWELL
-
-    return radius * (SNAP_SWELL if size.shape == "snap" else 1.0) + size.clearance
+    return outer_radius(radius, size.shape) + size.clearance
 
 
 def _frame(d):
@@ -432,7 +421,7 @@ def _sizes(size, room):
                       float(size.min_length)}, reverse=True)
     out = []
     for r in radii:
-        if _reach(size, r) + _wall(r) > room + 1e-9:
+        if _reach(size, r) + wall(r) > room + 1e-9:
             continue
         out += [(r, L) for L in lengths if L <= size.length + 1e-9]
     return out
@@ -441,7 +430,7 @@ def _sizes(size, room):
 def _fit(patch, crops, contact, size, p, d, r, L, pin_a):
     """Whether a pin of radius r and length L at p along d (out of the pin piece) fits its two pieces with its
     clearance and wall -> (base depth, None) or (None, why)."""
-    R, w = _reach(size, r), _wall(r)
+    R, w = _reach(size, r), wall(r)
     rel = patch.points - p
     t = rel @ d
     radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
@@ -467,7 +456,7 @@ def _try(patch, contact, crops, size, direction, pin_a, placed=(), memo=None, ma
         d = -d
     pin, hole = (contact.a, contact.b) if pin_a else (contact.b, contact.a)
     cos_max = np.cos(np.radians(MAX_TILT_DEG))
-    need = _reach(size, size.min_radius) + _wall(size.min_radius)
+    need = _reach(size, size.min_radius) + wall(size.min_radius)
     spots = patch.spots(need)
     if not spots:
         return None, (f"no room: the widest spot of the {contact.area:.0f} mm^2 contact is {patch.widest:.2f} mm from "
@@ -483,11 +472,11 @@ def _try(patch, contact, crops, size, direction, pin_a, placed=(), memo=None, ma
         return None, (f"the sliding direction of the split between {contact.a} and {contact.b} stands more than "
                       f"{MAX_TILT_DEG:g} deg off the contact wherever a pin has room")
     trials = [(p, r, L) for r, L in _sizes(size, good[0][1]) for p, room in good[:5]
-              if _reach(size, r) + _wall(r) <= room + 1e-9]
+              if _reach(size, r) + wall(r) <= room + 1e-9]
     for p, r, L in trials:
         if tests >= max_tests:
             break
-        R, w = _reach(size, r), _wall(r)
+        R, w = _reach(size, r), wall(r)
         seg = (p - (0.5 + w) * d, p + (L + size.axial_clearance + w) * d)  # the base is at least 0.5 mm deep
         clash = next((o for o in placed if _seg_distance(*seg, *o.segment()) < R + o.reach + max(w, o.wall)), None)
         if clash is not None:
@@ -538,7 +527,7 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
         g.add_edge(c.a, c.b, weight=c.area)
     tree = {frozenset(e) for e in nx.maximum_spanning_edges(g, data=False)} if found else set()
     rng = np.random.default_rng(seed)
-    depth = size.length + size.axial_clearance + 2 * _wall(size.radius) + 2.0 * _reach(size, size.radius) + 1.0
+    depth = size.length + size.axial_clearance + 2 * wall(size.radius) + 2.0 * _reach(size, size.radius) + 1.0
     prepared = []  # per contact: patch, crops, planned direction (or None), direction to try first
     for c in found:
         patch = _Patch(c, rng)
@@ -711,8 +700,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
             size = pin_size(joint_spec, model.mesh)
             joints, records, plan = place_joints(cut, cells, size)
             problem = joint_graph_problem(sorted(cut), joints, records)
-            # joints.allow: [loose] (the joints branch's key) lets a puzzle in several parts build
-            if problem and "loose" not in tuple(getattr(joint_spec, "allow", ()) or ()):
+            if problem and "loose" not in joint_spec.allow:
                 raise GeometryError(problem)
     pieces = []
     with timer("compose", progress):
@@ -737,10 +725,7 @@ def pin_size(joint_spec, mesh):
     length = joint_spec.length if joint_spec.length is not None else float(np.clip(round(2.5 * r, 1), 3.0, 10.0))
     c = joint_spec.clearance if joint_spec.clearance is not None else DEFAULT_CLEARANCE
     ac = joint_spec.axial_clearance if joint_spec.axial_clearance is not None else DEFAULT_AXIAL_CLEARANCE
-    lo_r = getattr(joint_spec, "min_radius", None)  # joints.min_radius / min_length where the spec has them
-    lo_l = getattr(joint_spec, "min_length", None)
-    lo_r = MIN_RADIUS if lo_r is None else float(lo_r)
-    lo_l = MIN_LENGTH if lo_l is None else float(lo_l)
+    lo_r, lo_l = float(joint_spec.min_radius), float(joint_spec.min_length)
     return PinSize(float(r), float(length), float(c), float(ac), joint_spec.shape or "cylinder",
                    joint_spec.style or "pin", min(lo_r, float(r)), min(lo_l, float(length)))
 
