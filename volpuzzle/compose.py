@@ -35,10 +35,11 @@ _MAX_FACE_POINTS = 100000  # per grid face, on average
 _ROUNDS = 60
 _WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
 _BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
-# A pool of 2 spawned workers costs ~2.5 s (imports, pickling) before it saves anything: measured on the twisted
-# torus (32 pieces, 64 joints, 92k face triangles) serial took 1.2 s and the pool 3.6 s. Serial below this estimate.
+# A spawned worker costs ~2.5 s of CPU (imports, pickling) before it builds anything; this process keeps building
+# meanwhile (see _pooled), so the pool is only refused where the whole compose is about as short as that start-up.
 _POOL_MIN_PIECES = 16
-_POOL_MIN_SECONDS = 5.0
+_POOL_MIN_SECONDS = 3.0
+_MAIN_TAKES_PIECES = True  # False: the workers build every piece (tests use it to see them do so)
 _SECONDS_PER_TRIANGLE = 1e-5  # building, checking and converting one piece triangle (measured, 2 cores, loaded)
 _SECONDS_PER_JOINT = 0.005  # the booleans of one pin and its hole
 
@@ -1070,6 +1071,54 @@ def _use_pool(jobs, n, sampling, joints):
     return seconds >= _POOL_MIN_SECONDS
 
 
+def _pooled(order, jobs, tiling, sampling, fmap, joints, progress):
+    """Pieces built by this process and jobs - 1 spawned workers together -> {cell index: record}. This process
+    takes pieces from the front while the workers start (~2.5 s of imports that it would otherwise wait for) and
+    then take pieces from the back, two queued each; a piece still queued when the front reaches it is built
+    here. Every piece is built by the same function, so where it is built does not change it."""
+    recs, n = {}, len(order)
+    pending = list(order)
+    running = {}
+
+    def finished(fut, index):
+        try:
+            recs[index] = fut.result()
+        except concurrent.futures.process.BrokenProcessPool as e:
+            raise GeometryError(f"compose: a worker process died while building {tiling.cell(index).id} ({e}); "
+                                f"try --jobs 1") from e
+        if progress:
+            progress(len(recs), n, recs[index][0])
+
+    ctx = multiprocessing.get_context("spawn")
+    _init_worker(tiling, sampling, fmap, joints)
+    try:
+        with concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1, mp_context=ctx, initializer=_init_worker,
+                                                    initargs=(tiling, sampling, fmap, joints)) as pool:
+            while pending or running:
+                for fut in [f for f in running if f.done()]:
+                    finished(fut, running.pop(fut))
+                # the last pending piece is this process's own, so it never idles while workers start
+                while pending[_MAIN_TAKES_PIECES:] and len(running) < 2 * (jobs - 1):
+                    index = pending.pop()
+                    running[pool.submit(_build_in_worker, index)] = index
+                if _MAIN_TAKES_PIECES:
+                    if pending:
+                        index = pending.pop(0)
+                        recs[index] = _build_in_worker(index)
+                        if progress:
+                            progress(len(recs), n, recs[index][0])
+                        continue
+                    # nothing left here: take back what no worker has started
+                    pending += [running.pop(f) for f in [f for f in running if f.cancel()]]
+                    if pending:
+                        continue
+                if running:
+                    concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+    finally:
+        _WORKER.clear()
+    return recs
+
+
 def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None):
     """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
     pool when the work is large enough to pay for one (same results as jobs=1); progress(i, n, piece_id) is called
@@ -1089,19 +1138,7 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
         finally:
             _WORKER.clear()
     else:
-        ctx = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(max_workers=int(jobs), mp_context=ctx, initializer=_init_worker,
-                                                    initargs=(tiling, sampling, fmap, joints)) as pool:
-            futures = {pool.submit(_build_in_worker, index): index for index in order}
-            for k, fut in enumerate(concurrent.futures.as_completed(futures)):
-                try:
-                    rec = fut.result()
-                except concurrent.futures.process.BrokenProcessPool as e:
-                    raise GeometryError(f"compose: a worker process died while building "
-                                        f"{tiling.cell(futures[fut]).id} ({e}); try --jobs 1") from e
-                recs[futures[fut]] = rec
-                if progress:
-                    progress(k + 1, n, rec[0])
+        recs = _pooled(order, int(jobs), tiling, sampling, fmap, joints, progress)
     out = Pieces(_piece_from(recs[index]) for index in order)
     out.sampling = sampling
     out.seconds = {recs[index][0]: recs[index][6] for index in order}
