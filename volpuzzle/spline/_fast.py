@@ -5,13 +5,14 @@ element (a branch-free count over few breaks, else a binary search), then the p+
 that element's extraction matrix applied to the Bernstein values (N_i = sum_m ext[e, i, m] B_m(s); NURBS Book 5.3
 / Borden et al. 2011) -- no divisions, ~1.3x faster than A2.2 here. The local (p+1)^3 block of control points is
 contracted w-first; for degree <= 3 in v and w those loops run with constant length 4 over a zero-padded net, so
-LLVM unrolls them (~1.5x); higher degrees have their own (_high) kernels, so that the common ones compile less code. Tricubic values have their own kernel with every basis value in a register (~1.5x
-more). Each call fills one range of the points; scratch is per call.
+LLVM unrolls them (~1.5x); higher degrees have their own (_high) kernels, so that the common ones compile less code.
+Tricubic values have their own kernel with every basis value in a register (~1.5x more). Each call fills one range
+of the points; scratch is per call.
 
 `cp` is (n_u, n_v, n_w (+pad), d): d = 3 for polynomial volumes, 4 (homogeneous) for rational ones; the
 caller divides by the last coordinate, and passes `mode`: an empty 1-d array for d = 3, 2-d for d = 4 (its
 ndim is a compile-time constant, so each case gets its own specialisation: ~25% faster than a run-time
-test). The serial entries release the GIL (nogil), so callers may run them from several threads.
+test). The kernels release the GIL (nogil), so callers may run them from several threads.
 Parameters are clamped to the domain; NaN propagates (it fails every comparison, so the search
 stays in range).
 """
