@@ -11,7 +11,7 @@ own. The machine may be shared: CPU seconds are steadier than wall seconds, and 
 says how slow the machine is right now. Targets: 1024 pieces <= 60 s wall, 32 pieces <= 3 s warm, cold <= 10 s,
 peak <= 1.5 GB, --jobs 2 >= 1.5x faster than --jobs 1 at 256, bunny-cage within 2x of the baseline.
 
-Run: .venv/bin/python scripts/bench.py [--quick] [--no-bunny] [--no-cold]
+Run: .venv/bin/python scripts/bench.py [--quick] [--no-bunny] [--no-cold] [--no-torus]
 """
 
 import argparse
@@ -139,12 +139,12 @@ def fit(sizes, times):
 
 def baseline_bunny(out_dir, size=120.0, radius=2.5, length=6.0, clearance=0.15):
     """The bunny cut into 2x2x2 boxes with plain manifold3d, a pin across each of the 12 inner faces (united with
-    one side, its hole with clearance cut from the other), every piece written as STL. -> seconds, pieces"""
+    one side, its hole with clearance cut from the other), every piece written as STL. -> wall s, CPU s, pieces"""
     import manifold3d as m3d
     import numpy as np
     import trimesh
 
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     mesh = trimesh.load(REPO / "specs" / "models" / "cgal_bunny00.ply", force="mesh", process=False)
     mesh.apply_scale(size / float(np.max(mesh.extents)))
     solid = m3d.Manifold(m3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
@@ -178,7 +178,7 @@ def baseline_bunny(out_dir, size=120.0, radius=2.5, length=6.0, clearance=0.15):
         got = body.to_mesh()
         trimesh.Trimesh(got.vert_properties[:, :3], got.tri_verts, process=False).export(
             Path(out_dir) / f"p{cell[0]}-{cell[1]}-{cell[2]}.stl")
-    return time.perf_counter() - t, len(cells)
+    return time.perf_counter() - t, time.process_time() - c, len(cells)
 
 
 def main():
@@ -186,6 +186,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="32 and 256 pieces only")
     ap.add_argument("--no-bunny", action="store_true")
     ap.add_argument("--no-cold", action="store_true")
+    ap.add_argument("--no-torus", action="store_true", help="skip the twisted torus builds")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -199,7 +200,7 @@ def main():
             spec = REPO / "specs" / "quarter-torus.yaml"
             show("quarter torus, empty numba cache (cold)", run_child(spec, env=env))
             show("quarter torus, the cache it filled (warm)", run_child(spec, env=env))
-        sizes = [32, 256] if args.quick else [32, 256, 1024]
+        sizes = [] if args.no_torus else [32, 256] if args.quick else [32, 256, 1024]
         results = {}
         for n in sizes:
             results[n] = run_child(variant("twisted-torus", GRIDS[n], tmp))
@@ -208,19 +209,27 @@ def main():
         if len(ok) > 1:
             print(f"per stage, seconds, and the fitted exponent k of t ~ n^k from {min(ok)} to {max(ok)} pieces:")
             stage_table(ok)
-        two = run_child(variant("twisted-torus", GRIDS[256], tmp), jobs=2)
-        show("twisted torus 4x4x16, --jobs 2", two)
+        two = {"error": "not run"} if args.no_torus else run_child(variant("twisted-torus", GRIDS[256], tmp), jobs=2)
+        if not args.no_torus:
+            show("twisted torus 4x4x16, --jobs 2", two)
         if "error" not in two and "error" not in results.get(256, {"error": 1}):
             one = results[256]
             print(f"  --jobs 2 / --jobs 1 at 256 pieces: whole build {one['wall'] / two['wall']:.2f}x faster (wall), "
                   f"compose {one['stages']['compose'] / max(two['stages']['compose'], 1e-9):.2f}x")
         if not args.no_bunny:
-            t_base, n_base = baseline_bunny(Path(tmp) / "baseline")
+            # interleaved: baseline, build, baseline, so that a change in the machine's load shows
+            first = baseline_bunny(Path(tmp) / "baseline")
             bunny = run_child(REPO / "specs" / "bunny-cage.yaml")
+            second = baseline_bunny(Path(tmp) / "baseline2")
             show("bunny-cage", bunny)
-            print(f"plain manifold3d baseline (2x2x2 boxes, 12 pins, {n_base} STL files): {t_base:.1f} s wall")
+            for k, (t_base, c_base, n_base) in enumerate((first, second)):
+                print(f"plain manifold3d baseline {k + 1} (2x2x2 boxes, 12 pins, {n_base} STL files): {t_base:.1f} s "
+                      f"wall, {c_base:.1f} s CPU")
             if "error" not in bunny:
-                print(f"  bunny-cage / baseline: {bunny['wall'] / t_base:.1f}x")
+                wall = (first[0] + second[0]) / 2
+                cpu = (first[1] + second[1]) / 2
+                print(f"  bunny-cage / baseline: {bunny['wall'] / wall:.1f}x wall, "
+                      f"{(bunny['cpu'] + bunny['cpu_children']) / cpu:.1f}x CPU")
     print(f"machine probe {machine_probe():.3f} s at the end")
 
 
