@@ -10,7 +10,7 @@ OUTS := $(patsubst specs/%.yaml,out/%/report.json,$(SPECS))
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,batch]'
 	touch $@
 
 setup: $(VENV)/.installed

@@ -1,75 +1,38 @@
-"""Build benchmark: builds specs/twisted-torus.yaml (and the bunny when its spec exists) and prints per-stage times,
-triangles, output size and peak memory, and the joint figures (touching pairs, those with room, pinned, pieces
-without a joint, joint-graph parts, largest/smallest piece volume). Prints figures; asserts nothing.
+"""Build benchmark (issue 13): prints figures, asserts nothing.
 
-Targets on a 2-core machine: twisted torus <= 10 s wall and <= 1.5 GB peak for the whole build.
+- cold start: the quarter torus on an empty numba cache, then again on the cache it filled (warm);
+- the twisted torus (150 mm, 0.05 mm) at 32, 256 and 1024 pieces (2x2x8, 4x4x16, 8x8x16; --quick: 32 and 256):
+  per-stage wall and CPU seconds, total, peak memory, plates, and each stage's fitted exponent t ~ n^k;
+- --jobs 1 against --jobs 2 on the 256-piece build;
+- bunny-cage against a plain manifold3d baseline written here: the same mesh cut into 2x2x2 boxes with 12 pins;
+- every spec in specs/ as written, with its joint figures (issue 9): touching pairs, those with room, those pinned,
+  pieces without a joint, joint-graph parts, largest/smallest piece volume.
+
+Every build runs in its own process (a fresh interpreter, as a user's `volpuzzle build`), so its peak memory is its
+own. The machine may be shared: CPU seconds are steadier than wall seconds, and the fixed-loop probe printed first
+says how slow the machine is right now. Targets: 1024 pieces <= 60 s wall, 32 pieces <= 3 s warm, cold <= 10 s,
+peak <= 1.5 GB, --jobs 2 >= 1.5x faster than --jobs 1 at 256, bunny-cage within 2x of the baseline.
+
+Run: .venv/bin/python scripts/bench.py [--quick] [--no-bunny] [--no-cold] [--no-torus] [--no-examples]
 """
 
 import argparse
+import json
+import math
+import os
 import resource
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-
-import volpuzzle  # noqa: E402
-
-
-def folder_size(path):
-    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
-
-
-def bench(spec, jobs):
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "out"
-        t0 = time.perf_counter()
-        report = volpuzzle.build(spec, output_dir=out, jobs=jobs, force=True)
-        wall = time.perf_counter() - t0
-        size = folder_size(out)
-    self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    print(f"== {Path(spec).name}: {len(report['pieces'])} pieces, jobs={jobs}")
-    print(f"wall             {wall:8.2f} s")
-    for stage, t in report["timings_s"].items():
-        print(f"  {stage:<14} {t:8.3f} s")
-    print(f"triangles        {sum(p['triangles'] for p in report['pieces']):8d}")
-    print(f"output size      {size / 1e6:8.2f} MB")
-    print(f"peak memory      {max(self_kb, child_kb) / 1024:8.0f} MB (largest process; main {self_kb / 1024:.0f} MB,"
-          f" largest worker {child_kb / 1024:.0f} MB)")
-    print(f"volume error     {report['checks']['volume_error']:8.2e}")
-    print_joint_figures(report)
-
-
-def print_joint_figures(report):
-    """The puzzle's joint figures (volpuzzle.joint.report_figures): does it hold together, and how well pinned."""
-    from volpuzzle.joint import report_figures
-
-    fig = report_figures(report)
-
-    def show(x):
-        return "-" if x is None else str(x)
-
-    share = ""
-    if fig["with_room"]:
-        share = f" ({100.0 * fig['pinned_with_room'] / fig['with_room']:.0f}% of those with room)"
-    print(f"touching pairs   {show(fig['touching_pairs']):>8}")
-    print(f"  with room      {show(fig['with_room']):>8}")
-    print(f"  pinned         {show(fig['pinned']):>8}{share}")
-    loose = fig["pieces_without_joint"]
-    print(f"without a joint  {len(loose):8d}" + (f" ({', '.join(loose[:6])})" if loose else ""))
-    print(f"joint-graph parts{fig['parts']:8d}")
-    if fig["largest_volume_mm3"] is not None:
-        ratio = fig["largest_volume_mm3"] / max(fig["smallest_volume_mm3"], 1e-12)
-        print(f"piece volume     {fig['largest_volume_mm3']:8.0f} to {fig['smallest_volume_mm3']:.0f} mm^3 "
-              f"(largest/smallest {ratio:.1f})")
+GRIDS = {32: [2, 2, 8], 256: [4, 4, 16], 1024: [8, 8, 16]}
 
 
 def machine_probe():
-    """Seconds for a fixed pure-Python loop: this sandbox's speed drifts by up to ~40% between runs, so the build
-    figures are printed next to it."""
+    """Seconds for a fixed pure-Python loop (larger means a slower machine right now)."""
     t = time.perf_counter()
     s = 0
     for i in range(5_000_000):
@@ -77,21 +40,223 @@ def machine_probe():
     return time.perf_counter() - t
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--jobs", type=int, default=None)
-    parser.add_argument("specs", nargs="*")
-    args = parser.parse_args()
-    specs = args.specs or [str(REPO / "specs" / "twisted-torus.yaml")]
-    bunny = REPO / "specs" / "bunny-cage.yaml"
-    if not args.specs and bunny.exists():
-        specs.append(str(bunny))
-    print(f"machine probe    {machine_probe():8.3f} s (a fixed Python loop; larger means a slower machine right now)")
-    for spec in specs:
+# --- the child: one build, measured from inside ---------------------------------------------------------------
+
+def child(spec, out, jobs):
+    """Build spec in this process and print one JSON line: per-stage wall and CPU seconds, peak memory."""
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    sys.path.insert(0, str(REPO))
+    from contextlib import contextmanager
+
+    from volpuzzle import pipeline
+    from volpuzzle.joint import report_figures
+
+    cpu = {}
+    plain_call = pipeline.Timer.__call__
+
+    @contextmanager
+    def timed(self, name, progress=None):
+        c0 = time.process_time()
         try:
-            bench(spec, args.jobs)
-        except volpuzzle.VolpuzzleError as e:  # one failed example must not hide the others' figures
-            print(f"== {Path(spec).name}: the build failed: {e}")
+            with plain_call(self, name, progress):
+                yield
+        finally:
+            cpu[name] = cpu.get(name, 0.0) + time.process_time() - c0
+
+    pipeline.Timer.__call__ = timed
+    report = pipeline.build(spec, output_dir=out, jobs=jobs, force=True, progress=pipeline.Progress(False))
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    print(json.dumps({
+        "pieces": len(report["pieces"]), "plates": len(report["plates"]),
+        "wall": time.perf_counter() - t_wall, "cpu": time.process_time() - t_cpu,
+        "cpu_children": kids.ru_utime + kids.ru_stime,
+        "stages": {k: v for k, v in report["timings_s"].items() if k != "total"}, "stages_cpu": cpu,
+        "peak_mb": own.ru_maxrss / 1024, "peak_child_mb": kids.ru_maxrss / 1024,
+        "triangles": sum(p["triangles"] for p in report["pieces"]),
+        "joints": report_figures(report),
+    }))
+
+
+def run_child(spec, jobs=1, env=None):
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        proc = subprocess.run([sys.executable, __file__, "--child", str(spec), str(Path(tmp) / "out"), str(jobs)],
+                              capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "process_wall": wall}
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    result["process_wall"] = wall  # including the interpreter's start and imports, as a user waits
+    return result
+
+
+def variant(name, grid, tmp):
+    import yaml
+
+    spec = yaml.safe_load((REPO / "specs" / f"{name}.yaml").read_text())
+    spec["name"] = f"{name}-{grid[0]}x{grid[1]}x{grid[2]}"
+    spec["grid"] = grid
+    path = Path(tmp) / f"{spec['name']}.yaml"
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def show(label, r):
+    if "error" in r:
+        print(f"{label}: FAILED: {r['error']}")
+        return
+    print(f"{label}: {r['pieces']} pieces, {r['plates']} plates, {r['triangles']} triangles; wall {r['wall']:.1f} s "
+          f"({r['process_wall']:.1f} s with the interpreter), CPU {r['cpu']:.1f} s (+{r['cpu_children']:.1f} s in "
+          f"workers), peak {max(r['peak_mb'], r['peak_child_mb']):.0f} MB (main {r['peak_mb']:.0f})")
+    show_joints(r["joints"])
+
+
+def show_joints(fig):
+    """Does the puzzle hold together, and how well is it pinned (volpuzzle.joint.report_figures)."""
+    def n(x):
+        return "-" if x is None else str(x)
+
+    share = f" ({100.0 * fig['pinned_with_room'] / fig['with_room']:.0f}% of those with room)" if fig["with_room"] else ""
+    loose = fig["pieces_without_joint"]
+    line = (f"  joints: {n(fig['touching_pairs'])} touching pairs, {n(fig['with_room'])} with room, "
+            f"{n(fig['pinned'])} pinned{share}; {len(loose)} pieces without a joint"
+            f"{' (' + ', '.join(loose[:6]) + ')' if loose else ''}; {fig['parts']} joint-graph part(s)")
+    if fig["largest_volume_mm3"] is not None:
+        ratio = fig["largest_volume_mm3"] / max(fig["smallest_volume_mm3"], 1e-12)
+        line += f"; largest/smallest piece {ratio:.1f}"
+    print(line)
+
+
+def stage_table(results):
+    sizes = sorted(results)
+    stages = [s for s in results[sizes[0]]["stages"]]
+    head = "  stage          " + "".join(f"{n:>7d} wall   cpu" for n in sizes) + "   exponent (cpu, wall)"
+    print(head)
+    for s in stages + ["(whole build)"]:
+        row, cpus, walls = f"  {s:<14} ", [], []
+        for n in sizes:
+            r = results[n]
+            w = r["wall"] if s == "(whole build)" else r["stages"].get(s, 0.0)
+            c = r["cpu"] + r["cpu_children"] if s == "(whole build)" else r["stages_cpu"].get(s, 0.0)
+            walls.append(w)
+            cpus.append(c)
+            row += f"  {w:9.2f} {c:6.2f}"
+        row += f"   {fit(sizes, cpus):5.2f} {fit(sizes, walls):5.2f}"
+        print(row)
+
+
+def fit(sizes, times):
+    """Least-squares k in t = a n^k over the sizes (times below 10 ms are noise and left out)."""
+    pts = [(math.log(n), math.log(t)) for n, t in zip(sizes, times) if t > 0.01]
+    if len(pts) < 2:
+        return float("nan")
+    mx = sum(p[0] for p in pts) / len(pts)
+    my = sum(p[1] for p in pts) / len(pts)
+    return sum((x - mx) * (y - my) for x, y in pts) / sum((x - mx) ** 2 for x, _ in pts)
+
+
+# --- the plain manifold3d baseline for the bunny ---------------------------------------------------------------
+
+def baseline_bunny(out_dir, size=120.0, radius=2.5, length=6.0, clearance=0.15):
+    """The bunny cut into 2x2x2 boxes with plain manifold3d, a pin across each of the 12 inner faces (united with
+    one side, its hole with clearance cut from the other), every piece written as STL. -> wall s, CPU s, pieces"""
+    import manifold3d as m3d
+    import numpy as np
+    import trimesh
+
+    t, c = time.perf_counter(), time.process_time()
+    mesh = trimesh.load(REPO / "specs" / "models" / "cgal_bunny00.ply", force="mesh", process=False)
+    mesh.apply_scale(size / float(np.max(mesh.extents)))
+    solid = m3d.Manifold(m3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
+                                  tri_verts=np.asarray(mesh.faces, np.uint32)))
+    lo, hi = mesh.bounds
+    mid = (lo + hi) / 2
+    cells = {}
+    for i in range(2):
+        for j in range(2):
+            for k in range(2):
+                corner = np.where([i, j, k], mid, lo - 1)
+                top = np.where([i, j, k], hi + 1, mid)
+                box = m3d.Manifold.cube(tuple(top - corner)).translate(tuple(corner))
+                cells[(i, j, k)] = solid ^ box
+    turns = [(0, 90, 0), (-90, 0, 0), (0, 0, 0)]  # +z onto +x, +y, +z
+    for a in range(3):
+        for cell in [c for c in cells if c[a] == 0]:
+            other = tuple(1 if b == a else cell[b] for b in range(3))
+            # the middle of the face the two cells share (the centre of the quarter of the box's mid plane)
+            centre = np.array([(lo[b] + mid[b]) / 2 if cell[b] == 0 else (mid[b] + hi[b]) / 2 for b in range(3)])
+            centre[a] = mid[a]
+            start = centre.copy()
+            start[a] -= 1.0  # rooted 1 mm inside its own piece
+            pin = m3d.Manifold.cylinder(length + 1.0, radius, radius, 48).rotate(turns[a]).translate(tuple(start))
+            hole = m3d.Manifold.cylinder(length + 0.3, radius + clearance, radius + clearance, 48)
+            hole = hole.rotate(turns[a]).translate(tuple(centre))
+            cells[cell] = cells[cell] + pin
+            cells[other] = cells[other] - hole
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    for cell, body in cells.items():
+        got = body.to_mesh()
+        trimesh.Trimesh(got.vert_properties[:, :3], got.tri_verts, process=False).export(
+            Path(out_dir) / f"p{cell[0]}-{cell[1]}-{cell[2]}.stl")
+    return time.perf_counter() - t, time.process_time() - c, len(cells)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="32 and 256 pieces only")
+    ap.add_argument("--no-bunny", action="store_true")
+    ap.add_argument("--no-cold", action="store_true")
+    ap.add_argument("--no-torus", action="store_true", help="skip the twisted torus builds")
+    ap.add_argument("--no-examples", action="store_true", help="skip building every spec in specs/ for its joints")
+    ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args.child[0], args.child[1], int(args.child[2]))
+        return
+    print(f"machine probe {machine_probe():.3f} s (fixed Python loop); load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    with tempfile.TemporaryDirectory() as tmp:
+        if not args.no_cold:
+            env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba-cache"))
+            spec = REPO / "specs" / "quarter-torus.yaml"
+            show("quarter torus, empty numba cache (cold)", run_child(spec, env=env))
+            show("quarter torus, the cache it filled (warm)", run_child(spec, env=env))
+        sizes = [] if args.no_torus else [32, 256] if args.quick else [32, 256, 1024]
+        results = {}
+        for n in sizes:
+            results[n] = run_child(variant("twisted-torus", GRIDS[n], tmp))
+            show(f"twisted torus {'x'.join(map(str, GRIDS[n]))}, --jobs 1", results[n])
+        ok = {n: r for n, r in results.items() if "error" not in r}
+        if len(ok) > 1:
+            print(f"per stage, seconds, and the fitted exponent k of t ~ n^k from {min(ok)} to {max(ok)} pieces:")
+            stage_table(ok)
+        two = {"error": "not run"} if args.no_torus else run_child(variant("twisted-torus", GRIDS[256], tmp), jobs=2)
+        if not args.no_torus:
+            show("twisted torus 4x4x16, --jobs 2", two)
+        if "error" not in two and "error" not in results.get(256, {"error": 1}):
+            one = results[256]
+            print(f"  --jobs 2 / --jobs 1 at 256 pieces: whole build {one['wall'] / two['wall']:.2f}x faster (wall), "
+                  f"compose {one['stages']['compose'] / max(two['stages']['compose'], 1e-9):.2f}x")
+        if not args.no_examples:
+            print("every example in specs/, as written:")
+            for spec in sorted((REPO / "specs").glob("*.yaml")):
+                show(f"{spec.stem}", run_child(spec))
+        if not args.no_bunny:
+            # interleaved: baseline, build, baseline, so that a change in the machine's load shows
+            first = baseline_bunny(Path(tmp) / "baseline")
+            bunny = run_child(REPO / "specs" / "bunny-cage.yaml")
+            second = baseline_bunny(Path(tmp) / "baseline2")
+            show("bunny-cage", bunny)
+            for k, (t_base, c_base, n_base) in enumerate((first, second)):
+                print(f"plain manifold3d baseline {k + 1} (2x2x2 boxes, 12 pins, {n_base} STL files): {t_base:.1f} s "
+                      f"wall, {c_base:.1f} s CPU")
+            if "error" not in bunny:
+                wall = (first[0] + second[0]) / 2
+                cpu = (first[1] + second[1]) / 2
+                print(f"  bunny-cage / baseline: {bunny['wall'] / wall:.1f}x wall, "
+                      f"{(bunny['cpu'] + bunny['cpu_children']) / cpu:.1f}x CPU")
+    print(f"machine probe {machine_probe():.3f} s at the end")
 
 
 if __name__ == "__main__":

@@ -133,3 +133,22 @@ def test_checks_on_solids_made_earlier_still_see_a_moved_piece():
     pieces[0][1].apply_translation([1.0, 0.0, 0.0])  # the same mesh object, edited after its first check
     checks = check_pieces(pieces, 8000.0)
     assert not checks["passed"] and checks["max_overlap_pair"] == ["p0-0-0", "p1-0-0"]
+
+
+@pytest.mark.parametrize("limit", [0.0, 20.0])
+def test_candidate_pairs_are_exactly_the_boxes_sharing_more_than_the_limit(limit):
+    # the vectorised sweep, in blocks small enough to split rows, against every pair tested one by one
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(0, 60, (200, 3))
+    bounds = np.stack([lo, lo + rng.uniform(1, 12, (200, 3))], axis=1)
+    bounds[7] = bounds[6]  # identical boxes
+    bounds[9, 0, 0] = bounds[8, 1, 0]  # touching along x
+    want = []
+    for i in range(len(bounds)):
+        for j in range(i + 1, len(bounds)):
+            common = np.minimum(bounds[i, 1], bounds[j, 1]) - np.maximum(bounds[i, 0], bounds[j, 0])
+            if np.all(common > 0) and np.prod(common) > limit:
+                want.append((i, j))
+    assert want  # the scene has overlapping boxes to find
+    assert candidate_pairs(bounds, limit) == want
+    assert candidate_pairs(bounds, limit, chunk=5) == want

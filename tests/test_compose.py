@@ -263,9 +263,12 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
     assert seams_seen > 0 or not t.periodic
 
 
-def test_pool_gives_the_same_pieces(monkeypatch):
+@pytest.mark.parametrize("main_takes", [False, True])
+def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
+    # with main_takes False the workers build every piece; with True this process builds alongside them
     monkeypatch.setattr(C, "_POOL_MIN_PIECES", 0)
     monkeypatch.setattr(C, "_POOL_MIN_SECONDS", 0.0)
+    monkeypatch.setattr(C, "_MAIN_TAKES_PIECES", main_takes)
     vol, t, fmap, sampling, pieces = _built("twisted")
     seen = []
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,

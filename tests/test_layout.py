@@ -148,3 +148,38 @@ def test_3mf_pieces_with_a_pin_material_read_back_strictly(tmp_path):
         objects = read_3mf(tmp_path / "out" / p["file"], strict=True)
         assert len(objects) == 1 and objects[0][3] is not None
     assert len(read_3mf(tmp_path / "out" / "puzzle.3mf", strict=True)) == len(report["pieces"])
+
+
+def test_overflowing_parts_fill_few_plates_inside_and_apart():
+    # 300 footprints over many plates: every one placed once, inside its plate, `spacing` from the others, on no
+    # more plates than trimesh's own packer needs in one pass
+    from trimesh.path import packing
+
+    from volpuzzle.layout import _pack
+
+    rng = np.random.default_rng(8)
+    extents = rng.uniform(8, 70, (300, 2))
+    plate, spacing = np.array([200.0, 150.0]), 3.0
+
+    def plates_with(pack):
+        remaining, placed = list(range(len(extents))), []
+        while remaining:
+            bounds, inserted = pack(extents[remaining], plate, spacing)
+            assert inserted.any()
+            chosen = [remaining[i] for i in np.flatnonzero(inserted)]
+            placed.append((chosen, bounds))
+            remaining = [r for j, r in enumerate(remaining) if not inserted[j]]
+        return placed
+
+    placed = plates_with(_pack)
+    assert sorted(i for chosen, _ in placed for i in chosen) == list(range(len(extents)))
+    for chosen, bounds in placed:
+        assert np.all(bounds[:, 0] >= spacing / 2 - 1e-9) and np.all(bounds[:, 1] <= plate - spacing / 2 + 1e-9)
+        size = np.ptp(bounds, axis=1)
+        assert np.allclose(np.sort(size, axis=1), np.sort(extents[chosen], axis=1))  # turned at most 90 degrees
+        lo, hi = bounds[:, 0], bounds[:, 1]
+        gap = np.maximum(lo[None] - hi[:, None], lo[:, None] - hi[None]).max(axis=2)
+        np.fill_diagonal(gap, np.inf)
+        assert gap.min() >= spacing - 1e-9
+    trimesh_once = plates_with(lambda e, p, s: packing.rectangles(e, size=p, spacing=s / 2, rotate=True, iterations=1))
+    assert len(placed) <= len(trimesh_once)

@@ -85,9 +85,9 @@ def test_clamps_outside_domain_and_nan():
 
 
 @pytest.mark.parametrize("rational", [False, True])
-@pytest.mark.parametrize("degrees,counts", [((3, 3, 3), (7, 24, 5)), ((2, 3, 1), (21, 6, 3))])
+@pytest.mark.parametrize("degrees,counts", [((3, 3, 3), (7, 24, 5)), ((2, 3, 1), (21, 6, 3)), ((2, 5, 4), (4, 8, 30))])
 def test_compiled_kernels_match_numpy(degrees, counts, rational):
-    # the tricubic kernel and the general one, in the serial (small batch) and parallel (large batch) runs, with
+    # the tricubic kernel, the general one and the one for degree > 3, in the serial (small batch) and parallel (large batch) runs, with
     # few elements (branch-free search) and many (binary search); NaN stays NaN and outside points clamp
     rng = np.random.default_rng(11)
     vol = random_volume(rng, degrees, counts, rational)

@@ -122,23 +122,39 @@ def shifted_overlap(a, b, budget: float):
     return overlap_volume(a, b.translate(tuple(shift * _SHIFT_DIR))), shift * area
 
 
-def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0):
+def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: int = 1 << 20):
     """Pairs (i, j), i < j, whose bounding boxes share more than min_common_volume: a sweep along x.
 
     bounds: (n, 2, 3). Two solids cannot overlap by more than their boxes share, so pairs at or below
     the limit need no Boolean at all (face neighbours of an unrandomized grid share a box of volume 0).
+    The sweep's candidates (boxes that meet along x) are tested in vectorised blocks of about `chunk` pairs.
     """
+    bounds = np.asarray(bounds, float).reshape(-1, 2, 3)
+    n = len(bounds)
     order = np.argsort(bounds[:, 0, 0], kind="stable")
-    pairs = []
-    for a_pos, i in enumerate(order):
-        for j in order[a_pos + 1:]:
-            if bounds[j, 0, 0] >= bounds[i, 1, 0]:
-                break
-            lo = np.maximum(bounds[i, 0], bounds[j, 0])
-            hi = np.minimum(bounds[i, 1], bounds[j, 1])
-            if np.all(hi > lo) and float(np.prod(hi - lo)) > min_common_volume:
-                pairs.append((int(min(i, j)), int(max(i, j))))
-    return sorted(pairs)
+    lo_x = bounds[order, 0, 0]
+    # after position a, the boxes that start before box a ends along x: positions a+1 .. stop[a]-1
+    stop = np.searchsorted(lo_x, bounds[order, 1, 0], side="left")
+    first = np.arange(1, n + 1)
+    count = np.maximum(stop - first, 0)
+    ends = np.cumsum(count)
+    found = []
+    a = 0
+    while a < n:
+        # whole sweep rows per block, each block about `chunk` pairs
+        b = max(a + 1, int(np.searchsorted(ends, (ends[a - 1] if a else 0) + chunk, side="right")))
+        b = min(b, n)
+        rows = np.repeat(np.arange(a, b), count[a:b])
+        if len(rows):
+            offset = np.arange(len(rows)) - np.repeat(np.cumsum(count[a:b]) - count[a:b], count[a:b])
+            i, j = order[rows], order[first[rows] + offset]
+            common = np.clip(np.minimum(bounds[i, 1], bounds[j, 1]) - np.maximum(bounds[i, 0], bounds[j, 0]), 0, None)
+            meet = np.all(common > 0, axis=1) & (np.prod(common, axis=1) > min_common_volume)
+            found.append(np.stack([np.minimum(i, j)[meet], np.maximum(i, j)[meet]], axis=1))
+        a = b
+    pairs = np.concatenate(found) if found else np.zeros((0, 2), int)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    return [(int(i), int(j)) for i, j in pairs]
 
 
 def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,

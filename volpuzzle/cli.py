@@ -138,6 +138,24 @@ def check(directory):
     click.echo(f"{directory}: all checks hold ({result.get('summary', '')})")
 
 
+@cli.command()
+@click.argument("specs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "output_root", type=click.Path(file_okay=False),
+              help="Parent folder: each spec is built into DIR/<name> (default: each spec's own folder).")
+@click.option("--jobs", type=click.IntRange(min=1), help="Worker processes of the local cluster (default: cores).")
+@click.option("--scheduler", envvar="DASK_SCHEDULER_ADDRESS", help="A running Dask scheduler to build on.")
+@click.option("--force", is_flag=True, help="Replace existing output folders.")
+def batch(specs, output_root, jobs, scheduler, force):
+    """Build many specs on a Dask cluster; a failed spec does not stop the others."""
+    from .batch import run_batch, summary_table, terminal_progress
+
+    results = _run(run_batch, list(specs), output_root=output_root, jobs=jobs, scheduler=scheduler, force=force,
+                   progress=terminal_progress())
+    click.echo(summary_table(results))
+    if not all(r.ok for r in results):
+        sys.exit(1)
+
+
 def main():
     cli(prog_name="volpuzzle")
 

@@ -16,6 +16,7 @@ triangles: neighbours meet on one cut surface, bit for bit. A cell's surface is 
 
 import concurrent.futures
 import multiprocessing
+import os
 import time
 from dataclasses import dataclass
 
@@ -35,10 +36,13 @@ _MAX_FACE_POINTS = 100000  # per grid face, on average
 _ROUNDS = 60
 _WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
 _BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
-# A pool of 2 spawned workers costs ~2.5 s (imports, pickling) before it saves anything: measured on the twisted
-# torus (32 pieces, 64 joints, 92k face triangles) serial took 1.2 s and the pool 3.6 s. Serial below this estimate.
+# A spawned worker costs ~2.5 s of CPU (imports, pickling) before it builds anything. This process keeps building
+# meanwhile (see _pooled), but on a busy machine the start-up takes 10 s of wall time, and the pieces handed to the
+# workers then can hold up the end: measured with the 256-piece twisted torus (compose ~2.7 CPU s) the pool was
+# slower than serial, so serial below this estimate.
 _POOL_MIN_PIECES = 16
 _POOL_MIN_SECONDS = 5.0
+_MAIN_TAKES_PIECES = True  # False: the workers build every piece (tests use it to see them do so)
 _SECONDS_PER_TRIANGLE = 1e-5  # building, checking and converting one piece triangle (measured, 2 cores, loaded)
 _SECONDS_PER_JOINT = 0.005  # the booleans of one pin and its hole
 
@@ -1039,6 +1043,14 @@ def _init_worker(tiling, sampling, fmap, joints):
     _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints)
 
 
+def _warm_worker():
+    """Load what every piece needs (the compiled kernels, from numba's cache) before the worker is given pieces,
+    so that its first piece does not hold up the end of compose. -> the worker's pid"""
+    cell = next(iter(_WORKER["tiling"].cells.values()))
+    _WORKER["fmap"].evaluate(np.repeat(np.asarray(cell.center, float)[None], 512, axis=0))
+    return os.getpid()
+
+
 def _build_in_worker(index):
     w = _WORKER
     t0 = time.perf_counter()
@@ -1070,6 +1082,65 @@ def _use_pool(jobs, n, sampling, joints):
     return seconds >= _POOL_MIN_SECONDS
 
 
+def _pooled(order, jobs, tiling, sampling, fmap, joints, progress):
+    """Pieces built by this process and jobs - 1 spawned workers together -> {cell index: record}. This process
+    takes pieces from the front while the workers start (~2.5 s of imports that it would otherwise wait for) and
+    then take pieces from the back, two queued each; a piece still queued when the front reaches it is built
+    here. Every piece is built by the same function, so where it is built does not change it."""
+    recs, n = {}, len(order)
+    pending = list(order)
+    running = {}
+
+    def finished(fut, index):
+        try:
+            recs[index] = fut.result()
+        except concurrent.futures.process.BrokenProcessPool as e:
+            raise GeometryError(f"compose: a worker process died while building {tiling.cell(index).id} ({e}); "
+                                f"try --jobs 1") from e
+        if progress:
+            progress(len(recs), n, recs[index][0])
+
+    ctx = multiprocessing.get_context("spawn")
+    _init_worker(tiling, sampling, fmap, joints)
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1, mp_context=ctx, initializer=_init_worker,
+                                                  initargs=(tiling, sampling, fmap, joints))
+    # Pieces go to the workers only once one has started: queued behind a worker's start-up they could keep this
+    # process waiting at the end for as long as the start-up takes (10 s on a busy machine).
+    started = pool.submit(_warm_worker)
+    try:
+        while pending or running:
+            for fut in [f for f in running if f.done()]:
+                finished(fut, running.pop(fut))
+            # the last pending piece is this process's own, so it never idles while workers start
+            # (a pool that could not start leaves every piece to this process)
+            while (started.done() and started.exception() is None and pending[_MAIN_TAKES_PIECES:]
+                   and len(running) < 2 * (jobs - 1)):
+                index = pending.pop()
+                running[pool.submit(_build_in_worker, index)] = index
+            if _MAIN_TAKES_PIECES:
+                if pending:
+                    index = pending.pop(0)
+                    recs[index] = _build_in_worker(index)
+                    if progress:
+                        progress(len(recs), n, recs[index][0])
+                    continue
+                # nothing left here: take back what no worker has started
+                pending += [running.pop(f) for f in [f for f in running if f.cancel()]]
+                if pending:
+                    continue
+            if not (pending or running):
+                break
+            if not running and started.done():  # pieces left that only workers take, and no worker started
+                raise GeometryError(f"compose: the worker processes did not start ({started.exception()}); "
+                                    f"try --jobs 1")
+            concurrent.futures.wait(list(running) or [started], return_when=concurrent.futures.FIRST_COMPLETED)
+    finally:
+        _WORKER.clear()
+        # without waiting for workers still starting: they exit when they find the pool shut
+        pool.shutdown(wait=False, cancel_futures=True)
+    return recs
+
+
 def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None):
     """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
     pool when the work is large enough to pay for one (same results as jobs=1); progress(i, n, piece_id) is called
@@ -1089,19 +1160,7 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
         finally:
             _WORKER.clear()
     else:
-        ctx = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(max_workers=int(jobs), mp_context=ctx, initializer=_init_worker,
-                                                    initargs=(tiling, sampling, fmap, joints)) as pool:
-            futures = {pool.submit(_build_in_worker, index): index for index in order}
-            for k, fut in enumerate(concurrent.futures.as_completed(futures)):
-                try:
-                    rec = fut.result()
-                except concurrent.futures.process.BrokenProcessPool as e:
-                    raise GeometryError(f"compose: a worker process died while building "
-                                        f"{tiling.cell(futures[fut]).id} ({e}); try --jobs 1") from e
-                recs[futures[fut]] = rec
-                if progress:
-                    progress(k + 1, n, rec[0])
+        recs = _pooled(order, int(jobs), tiling, sampling, fmap, joints, progress)
     out = Pieces(_piece_from(recs[index]) for index in order)
     out.sampling = sampling
     out.seconds = {recs[index][0]: recs[index][6] for index in order}

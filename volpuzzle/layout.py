@@ -1,7 +1,7 @@
 """layout: print orientation of every piece and its place on build plates.
 
-Packing is trimesh's rectangle packer (trimesh.path.packing); this module only decides how each piece rests on the
-plate and turns the packer's boxes into transforms.
+Packing is a guillotine packer of the pieces' footprint rectangles (_pack), one plate at a time; trimesh's
+roll_transform turns its boxes into transforms.
 """
 
 from dataclasses import dataclass
@@ -159,12 +159,71 @@ def layout(parts, plate, spacing, pin_directions=None):
 
 
 def _pack(extents, plate, spacing):
-    """trimesh's packer -> (bounds, inserted). When its first, unshuffled attempt already places every part, the 49
-    shuffled ones it would go on to try could only move the parts around on this same plate, at 50 times the cost."""
-    bounds, inserted = packing.rectangles(extents, size=plate, spacing=spacing / 2.0, rotate=True, iterations=1)
-    if inserted.all():
-        return bounds, inserted
-    return packing.rectangles(extents, size=plate, spacing=spacing / 2.0, rotate=True, seed=0)
+    """Parts onto one plate: (n, 2) footprints -> (bounds (m, 2, 2) of the inserted ones in plate mm, inserted (n,)
+    bool). Two insertion orders (longest side first, largest area first); the second only runs when the first leaves
+    parts over, and wins only by putting more area on this plate."""
+    extents = np.asarray(extents, float).reshape(-1, 2)
+    grown = extents + spacing
+    best = None
+    for key in (grown.max(axis=1), grown.prod(axis=1)):
+        order = np.lexsort((np.arange(len(extents)), -grown.min(axis=1), -key))
+        bounds, inserted = _guillotine(extents, order, plate, spacing)
+        if inserted.all():
+            return bounds, inserted
+        area = grown[inserted].prod(axis=1).sum()
+        if best is None or area > best[0] + 1e-9:
+            best = area, bounds, inserted
+    return best[1], best[2]
+
+
+def _guillotine(extents, order, plate, spacing):
+    """One plate of guillotine packing, parts taken in `order` (n,) -> (bounds, inserted) as _pack. Each part goes
+    into the free rectangle it fills most tightly (either way round), which is then cut in two along the leftover's
+    shorter side. Parts are `spacing` apart and spacing / 2 from the plate's edge.
+
+    Every part is one vectorised test against all free rectangles: trimesh's packer walks a Python tree per part,
+    and was rerun 50 times with shuffled orders whenever the parts overflowed the plate (555 s for 1024 pieces)."""
+    grown = extents + spacing
+    width, depth = (float(s) for s in plate)
+    slack = 1e-9 * max(width, depth)
+    # free rectangles as rows of x, y, w, h; at most one more per placed part
+    free = np.zeros((2 * len(extents) + 1, 4))
+    free[0] = 0.0, 0.0, width, depth
+    count = 1
+    bounds = np.zeros((len(extents), 2, 2))
+    inserted = np.zeros(len(extents), bool)
+    for i in order:
+        a, b = grown[i]
+        f = free[:count]
+        leftover = f[:, 2] * f[:, 3] - a * b
+        fit_ab = (f[:, 2] >= a - slack) & (f[:, 3] >= b - slack)
+        fit_ba = (f[:, 2] >= b - slack) & (f[:, 3] >= a - slack)
+        # the tighter of the two ways round by the shorter leftover side, then the smallest leftover area
+        short_ab = np.minimum(f[:, 2] - a, f[:, 3] - b)
+        short_ba = np.minimum(f[:, 2] - b, f[:, 3] - a)
+        score_ab = np.where(fit_ab, leftover + 1e-6 * short_ab, np.inf)
+        score_ba = np.where(fit_ba, leftover + 1e-6 * short_ba, np.inf)
+        j_ab, j_ba = int(np.argmin(score_ab)), int(np.argmin(score_ba))
+        if not np.isfinite(min(score_ab[j_ab], score_ba[j_ba])):
+            continue
+        j, (pw, ph) = (j_ab, (a, b)) if score_ab[j_ab] <= score_ba[j_ba] else (j_ba, (b, a))
+        x, y, w, h = free[j]
+        inserted[i] = True
+        ext = extents[i] if pw == a else extents[i][::-1]
+        bounds[i, 0] = x + spacing / 2.0, y + spacing / 2.0
+        bounds[i, 1] = bounds[i, 0] + ext
+        # The longer leftover keeps the full side of the free rectangle.
+        if w - pw < h - ph:
+            right, top = (x + pw, y, w - pw, ph), (x, y + ph, w, h - ph)
+        else:
+            right, top = (x + pw, y, w - pw, h), (x, y + ph, pw, h - ph)
+        free[j] = free[count - 1]
+        count -= 1
+        for r in (right, top):
+            if r[2] > slack and r[3] > slack:
+                free[count] = r
+                count += 1
+    return bounds[inserted], inserted
 
 
 def _hull_area(points):

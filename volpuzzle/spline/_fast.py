@@ -5,22 +5,22 @@ element (a branch-free count over few breaks, else a binary search), then the p+
 that element's extraction matrix applied to the Bernstein values (N_i = sum_m ext[e, i, m] B_m(s); NURBS Book 5.3
 / Borden et al. 2011) -- no divisions, ~1.3x faster than A2.2 here. The local (p+1)^3 block of control points is
 contracted w-first; for degree <= 3 in v and w those loops run with constant length 4 over a zero-padded net, so
-LLVM unrolls them (~1.5x). Tricubic values have their own kernel with every basis value in a register (~1.5x
-more). Points are processed in blocks under `prange`; scratch is per block.
+LLVM unrolls them (~1.5x); higher degrees have their own (_high) kernels, so that the common ones compile less code.
+Tricubic values have their own kernel with every basis value in a register (~1.5x more). Each call fills one range
+of the points; scratch is per call.
 
 `cp` is (n_u, n_v, n_w (+pad), d): d = 3 for polynomial volumes, 4 (homogeneous) for rational ones; the
 caller divides by the last coordinate, and passes `mode`: an empty 1-d array for d = 3, 2-d for d = 4 (its
 ndim is a compile-time constant, so each case gets its own specialisation: ~25% faster than a run-time
-test). The serial entries release the GIL (nogil), so callers may run them from several threads.
+test). The kernels release the GIL (nogil), so callers may run them from several threads.
 Parameters are clamped to the domain; NaN propagates (it fails every comparison, so the search
 stays in range).
 """
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 MAXP = 8  # degree <= 7
-BLOCK = 512
 # Fused multiply-add only: ~1.5x on the cubic kernel, and no reordering of sums (full fastmath was slower). Results
 # can differ from the unfused ones in the last bit, but they are the same for the same input on one machine.
 _FM = {"contract"}
@@ -50,7 +50,7 @@ def padded_net(net, degrees):
     return np.ascontiguousarray(np.pad(net, ((0, 0), (0, 3 - pv), (0, 3 - pw), (0, 0))))
 
 
-@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+@njit(cache=True, fastmath=_FM, nogil=True)
 def _element(br, E, t):
     """Index of the element of the clamped t among breaks br (E+1,)."""
     lo = 0
@@ -69,7 +69,7 @@ def _element(br, E, t):
     return lo
 
 
-@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+@njit(cache=True, fastmath=_FM, nogil=True)
 def _locate(br, invh, t):
     """Element of t, clamped to the breaks br (E+1,), and t's local coordinate in it, in [0, 1]."""
     E = br.shape[0] - 1
@@ -82,8 +82,9 @@ def _locate(br, invh, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _basis(br, invh, ext, p, t, N, dN, B, want_der):
-    """Element index of t (clamped) and the p+1 basis values (and derivatives) in N (dN)."""
+def _basis(br, invh, ext, p, t, N, dN, B):
+    """Element index of t (clamped) and the p+1 basis values in N and derivatives in dN (N may be dN when only the
+    values are wanted: a flag would compile _basis twice, and the derivatives cost little beside the contraction)."""
     lo, s = _locate(br, invh, t)
     r1 = 1.0 - s
     B[0] = 1.0
@@ -94,14 +95,13 @@ def _basis(br, invh, ext, p, t, N, dN, B, want_der):
             B[r] = saved + r1 * tmp
             saved = s * tmp
         B[j] = saved
-    if want_der:
-        # From degree p-1: d/ds B_m = p (B^{p-1}_{m-1} - B^{p-1}_m); times 1/width for d/dt.
-        h = p * invh[lo]
-        for i in range(p + 1):
-            acc = 0.0
-            for m in range(p):
-                acc += B[m] * (ext[lo, i, m + 1] - ext[lo, i, m])
-            dN[i] = h * acc
+    # From degree p-1: d/ds B_m = p (B^{p-1}_{m-1} - B^{p-1}_m); times 1/width for d/dt.
+    h = p * invh[lo]
+    for i in range(p + 1):
+        acc = 0.0
+        for m in range(p):
+            acc += B[m] * (ext[lo, i, m + 1] - ext[lo, i, m])
+        dN[i] = h * acc
     saved = 0.0
     for r in range(p):
         tmp = B[r]
@@ -117,77 +117,47 @@ def _basis(br, invh, ext, p, t, N, dN, B, want_der):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+def values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
     # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
     rat = mode.ndim == 2  # a compile-time constant
-    small = pv <= 3 and pw <= 3
     Nu = np.zeros(MAXP)
     Nv = np.zeros(MAXP)
     Nw = np.zeros(MAXP)
     B = np.empty(MAXP)
     for idx in range(start, stop):
-        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, Nu, B, False)]
-        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, Nv, B, False)]
-        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, Nw, B, False)]
+        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, Nu, B)]
+        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, Nv, B)]
+        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, Nw, B)]
         ax = 0.0
         ay = 0.0
         az = 0.0
         ah = 0.0
-        if small:
-            n0 = Nw[0]
-            n1 = Nw[1]
-            n2 = Nw[2]
-            n3 = Nw[3]
-            for i in range(pu + 1):
-                bx = 0.0
-                by = 0.0
-                bz = 0.0
-                bh = 0.0
-                for j in range(4):
-                    c = cp[i0 + i, j0 + j]
-                    cx = n0 * c[k0, 0] + n1 * c[k0 + 1, 0] + n2 * c[k0 + 2, 0] + n3 * c[k0 + 3, 0]
-                    cy = n0 * c[k0, 1] + n1 * c[k0 + 1, 1] + n2 * c[k0 + 2, 1] + n3 * c[k0 + 3, 1]
-                    cz = n0 * c[k0, 2] + n1 * c[k0 + 1, 2] + n2 * c[k0 + 2, 2] + n3 * c[k0 + 3, 2]
-                    nj = Nv[j]
-                    bx += nj * cx
-                    by += nj * cy
-                    bz += nj * cz
-                    if rat:
-                        ch = n0 * c[k0, 3] + n1 * c[k0 + 1, 3] + n2 * c[k0 + 2, 3] + n3 * c[k0 + 3, 3]
-                        bh += nj * ch
-                ni = Nu[i]
-                ax += ni * bx
-                ay += ni * by
-                az += ni * bz
-                ah += ni * bh
-        else:
-            for i in range(pu + 1):
-                bx = 0.0
-                by = 0.0
-                bz = 0.0
-                bh = 0.0
-                for j in range(pv + 1):
-                    cx = 0.0
-                    cy = 0.0
-                    cz = 0.0
-                    ch = 0.0
-                    for k in range(pw + 1):
-                        nk = Nw[k]
-                        cx += nk * cp[i0 + i, j0 + j, k0 + k, 0]
-                        cy += nk * cp[i0 + i, j0 + j, k0 + k, 1]
-                        cz += nk * cp[i0 + i, j0 + j, k0 + k, 2]
-                        if rat:
-                            ch += nk * cp[i0 + i, j0 + j, k0 + k, 3]
-                    nj = Nv[j]
-                    bx += nj * cx
-                    by += nj * cy
-                    bz += nj * cz
+        n0 = Nw[0]
+        n1 = Nw[1]
+        n2 = Nw[2]
+        n3 = Nw[3]
+        for i in range(pu + 1):
+            bx = 0.0
+            by = 0.0
+            bz = 0.0
+            bh = 0.0
+            for j in range(4):
+                c = cp[i0 + i, j0 + j]
+                cx = n0 * c[k0, 0] + n1 * c[k0 + 1, 0] + n2 * c[k0 + 2, 0] + n3 * c[k0 + 3, 0]
+                cy = n0 * c[k0, 1] + n1 * c[k0 + 1, 1] + n2 * c[k0 + 2, 1] + n3 * c[k0 + 3, 1]
+                cz = n0 * c[k0, 2] + n1 * c[k0 + 1, 2] + n2 * c[k0 + 2, 2] + n3 * c[k0 + 3, 2]
+                nj = Nv[j]
+                bx += nj * cx
+                by += nj * cy
+                bz += nj * cz
+                if rat:
+                    ch = n0 * c[k0, 3] + n1 * c[k0 + 1, 3] + n2 * c[k0 + 2, 3] + n3 * c[k0 + 3, 3]
                     bh += nj * ch
-                ni = Nu[i]
-                ax += ni * bx
-                ay += ni * by
-                az += ni * bz
-                ah += ni * bh
+            ni = Nu[i]
+            ax += ni * bx
+            ay += ni * by
+            az += ni * bz
+            ah += ni * bh
         out[idx, 0] = ax
         out[idx, 1] = ay
         out[idx, 2] = az
@@ -196,12 +166,62 @@ def _block_values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, 
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
+def values_high(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+    # values for degree > 3 along v or w, whose loops cannot run over a padded 4.
+    # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
+    rat = mode.ndim == 2  # a compile-time constant
+    Nu = np.zeros(MAXP)
+    Nv = np.zeros(MAXP)
+    Nw = np.zeros(MAXP)
+    B = np.empty(MAXP)
+    for idx in range(start, stop):
+        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, Nu, B)]
+        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, Nv, B)]
+        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, Nw, B)]
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        ah = 0.0
+        for i in range(pu + 1):
+            bx = 0.0
+            by = 0.0
+            bz = 0.0
+            bh = 0.0
+            for j in range(pv + 1):
+                cx = 0.0
+                cy = 0.0
+                cz = 0.0
+                ch = 0.0
+                for k in range(pw + 1):
+                    nk = Nw[k]
+                    cx += nk * cp[i0 + i, j0 + j, k0 + k, 0]
+                    cy += nk * cp[i0 + i, j0 + j, k0 + k, 1]
+                    cz += nk * cp[i0 + i, j0 + j, k0 + k, 2]
+                    if rat:
+                        ch += nk * cp[i0 + i, j0 + j, k0 + k, 3]
+                nj = Nv[j]
+                bx += nj * cx
+                by += nj * cy
+                bz += nj * cz
+                bh += nj * ch
+            ni = Nu[i]
+            ax += ni * bx
+            ay += ni * by
+            az += ni * bz
+            ah += ni * bh
+        out[idx, 0] = ax
+        out[idx, 1] = ay
+        out[idx, 2] = az
+        if rat:
+            out[idx, 3] = ah
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
                        mode):
-    # Same contraction as _block_values, carrying the value and the three partials in scalars
+    # Same contraction as values, carrying the value and the three partials in scalars
     # (suffix 0: value; u, v, w: partials; x, y, z, h: channels).
     rat = mode.ndim == 2
-    small = pv <= 3 and pw <= 3
     Nu = np.zeros(MAXP)
     Nv = np.zeros(MAXP)
     Nw = np.zeros(MAXP)
@@ -210,131 +230,70 @@ def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw,
     dNw = np.zeros(MAXP)
     B = np.empty(MAXP)
     for idx in range(start, stop):
-        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, dNu, B, True)]
-        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, dNv, B, True)]
-        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, dNw, B, True)]
-        if small:
-            n0 = Nw[0]
-            n1 = Nw[1]
-            n2 = Nw[2]
-            n3 = Nw[3]
-            d0 = dNw[0]
-            d1 = dNw[1]
-            d2 = dNw[2]
-            d3 = dNw[3]
-            ax0 = ay0 = az0 = ah0 = 0.0
-            axu = ayu = azu = ahu = 0.0
-            axv = ayv = azv = ahv = 0.0
-            axw = ayw = azw = ahw = 0.0
-            for i in range(pu + 1):
-                bx0 = by0 = bz0 = bh0 = 0.0
-                bxv = byv = bzv = bhv = 0.0
-                bxw = byw = bzw = bhw = 0.0
-                for j in range(4):
-                    c = cp[i0 + i, j0 + j]
-                    cx0 = n0 * c[k0, 0] + n1 * c[k0 + 1, 0] + n2 * c[k0 + 2, 0] + n3 * c[k0 + 3, 0]
-                    cy0 = n0 * c[k0, 1] + n1 * c[k0 + 1, 1] + n2 * c[k0 + 2, 1] + n3 * c[k0 + 3, 1]
-                    cz0 = n0 * c[k0, 2] + n1 * c[k0 + 1, 2] + n2 * c[k0 + 2, 2] + n3 * c[k0 + 3, 2]
-                    cxw = d0 * c[k0, 0] + d1 * c[k0 + 1, 0] + d2 * c[k0 + 2, 0] + d3 * c[k0 + 3, 0]
-                    cyw = d0 * c[k0, 1] + d1 * c[k0 + 1, 1] + d2 * c[k0 + 2, 1] + d3 * c[k0 + 3, 1]
-                    czw = d0 * c[k0, 2] + d1 * c[k0 + 1, 2] + d2 * c[k0 + 2, 2] + d3 * c[k0 + 3, 2]
-                    ch0 = 0.0
-                    chw = 0.0
-                    if rat:
-                        ch0 = n0 * c[k0, 3] + n1 * c[k0 + 1, 3] + n2 * c[k0 + 2, 3] + n3 * c[k0 + 3, 3]
-                        chw = d0 * c[k0, 3] + d1 * c[k0 + 1, 3] + d2 * c[k0 + 2, 3] + d3 * c[k0 + 3, 3]
-                    nj = Nv[j]
-                    dj = dNv[j]
-                    bx0 += nj * cx0
-                    by0 += nj * cy0
-                    bz0 += nj * cz0
-                    bh0 += nj * ch0
-                    bxv += dj * cx0
-                    byv += dj * cy0
-                    bzv += dj * cz0
-                    bhv += dj * ch0
-                    bxw += nj * cxw
-                    byw += nj * cyw
-                    bzw += nj * czw
-                    bhw += nj * chw
-                ni = Nu[i]
-                di = dNu[i]
-                ax0 += ni * bx0
-                ay0 += ni * by0
-                az0 += ni * bz0
-                ah0 += ni * bh0
-                axu += di * bx0
-                ayu += di * by0
-                azu += di * bz0
-                ahu += di * bh0
-                axv += ni * bxv
-                ayv += ni * byv
-                azv += ni * bzv
-                ahv += ni * bhv
-                axw += ni * bxw
-                ayw += ni * byw
-                azw += ni * bzw
-                ahw += ni * bhw
-        else:
-            ax0 = ay0 = az0 = ah0 = 0.0
-            axu = ayu = azu = ahu = 0.0
-            axv = ayv = azv = ahv = 0.0
-            axw = ayw = azw = ahw = 0.0
-            for i in range(pu + 1):
-                bx0 = by0 = bz0 = bh0 = 0.0
-                bxv = byv = bzv = bhv = 0.0
-                bxw = byw = bzw = bhw = 0.0
-                for j in range(pv + 1):
-                    cx0 = cy0 = cz0 = ch0 = 0.0
-                    cxw = cyw = czw = chw = 0.0
-                    for k in range(pw + 1):
-                        nk = Nw[k]
-                        dk = dNw[k]
-                        x = cp[i0 + i, j0 + j, k0 + k, 0]
-                        y = cp[i0 + i, j0 + j, k0 + k, 1]
-                        z = cp[i0 + i, j0 + j, k0 + k, 2]
-                        cx0 += nk * x
-                        cy0 += nk * y
-                        cz0 += nk * z
-                        cxw += dk * x
-                        cyw += dk * y
-                        czw += dk * z
-                        if rat:
-                            h = cp[i0 + i, j0 + j, k0 + k, 3]
-                            ch0 += nk * h
-                            chw += dk * h
-                    nj = Nv[j]
-                    dj = dNv[j]
-                    bx0 += nj * cx0
-                    by0 += nj * cy0
-                    bz0 += nj * cz0
-                    bh0 += nj * ch0
-                    bxv += dj * cx0
-                    byv += dj * cy0
-                    bzv += dj * cz0
-                    bhv += dj * ch0
-                    bxw += nj * cxw
-                    byw += nj * cyw
-                    bzw += nj * czw
-                    bhw += nj * chw
-                ni = Nu[i]
-                di = dNu[i]
-                ax0 += ni * bx0
-                ay0 += ni * by0
-                az0 += ni * bz0
-                ah0 += ni * bh0
-                axu += di * bx0
-                ayu += di * by0
-                azu += di * bz0
-                ahu += di * bh0
-                axv += ni * bxv
-                ayv += ni * byv
-                azv += ni * bzv
-                ahv += ni * bhv
-                axw += ni * bxw
-                ayw += ni * byw
-                azw += ni * bzw
-                ahw += ni * bhw
+        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, dNu, B)]
+        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, dNv, B)]
+        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, dNw, B)]
+        n0 = Nw[0]
+        n1 = Nw[1]
+        n2 = Nw[2]
+        n3 = Nw[3]
+        d0 = dNw[0]
+        d1 = dNw[1]
+        d2 = dNw[2]
+        d3 = dNw[3]
+        ax0 = ay0 = az0 = ah0 = 0.0
+        axu = ayu = azu = ahu = 0.0
+        axv = ayv = azv = ahv = 0.0
+        axw = ayw = azw = ahw = 0.0
+        for i in range(pu + 1):
+            bx0 = by0 = bz0 = bh0 = 0.0
+            bxv = byv = bzv = bhv = 0.0
+            bxw = byw = bzw = bhw = 0.0
+            for j in range(4):
+                c = cp[i0 + i, j0 + j]
+                cx0 = n0 * c[k0, 0] + n1 * c[k0 + 1, 0] + n2 * c[k0 + 2, 0] + n3 * c[k0 + 3, 0]
+                cy0 = n0 * c[k0, 1] + n1 * c[k0 + 1, 1] + n2 * c[k0 + 2, 1] + n3 * c[k0 + 3, 1]
+                cz0 = n0 * c[k0, 2] + n1 * c[k0 + 1, 2] + n2 * c[k0 + 2, 2] + n3 * c[k0 + 3, 2]
+                cxw = d0 * c[k0, 0] + d1 * c[k0 + 1, 0] + d2 * c[k0 + 2, 0] + d3 * c[k0 + 3, 0]
+                cyw = d0 * c[k0, 1] + d1 * c[k0 + 1, 1] + d2 * c[k0 + 2, 1] + d3 * c[k0 + 3, 1]
+                czw = d0 * c[k0, 2] + d1 * c[k0 + 1, 2] + d2 * c[k0 + 2, 2] + d3 * c[k0 + 3, 2]
+                ch0 = 0.0
+                chw = 0.0
+                if rat:
+                    ch0 = n0 * c[k0, 3] + n1 * c[k0 + 1, 3] + n2 * c[k0 + 2, 3] + n3 * c[k0 + 3, 3]
+                    chw = d0 * c[k0, 3] + d1 * c[k0 + 1, 3] + d2 * c[k0 + 2, 3] + d3 * c[k0 + 3, 3]
+                nj = Nv[j]
+                dj = dNv[j]
+                bx0 += nj * cx0
+                by0 += nj * cy0
+                bz0 += nj * cz0
+                bh0 += nj * ch0
+                bxv += dj * cx0
+                byv += dj * cy0
+                bzv += dj * cz0
+                bhv += dj * ch0
+                bxw += nj * cxw
+                byw += nj * cyw
+                bzw += nj * czw
+                bhw += nj * chw
+            ni = Nu[i]
+            di = dNu[i]
+            ax0 += ni * bx0
+            ay0 += ni * by0
+            az0 += ni * bz0
+            ah0 += ni * bh0
+            axu += di * bx0
+            ayu += di * by0
+            azu += di * bz0
+            ahu += di * bh0
+            axv += ni * bxv
+            ayv += ni * byv
+            azv += ni * bzv
+            ahv += ni * bhv
+            axw += ni * bxw
+            ayw += ni * byw
+            azw += ni * bzw
+            ahw += ni * bhw
         out[idx, 0] = ax0
         out[idx, 1] = ay0
         out[idx, 2] = az0
@@ -354,7 +313,103 @@ def _block_derivatives(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw,
             der[idx, 3, 2] = ahw
 
 
-@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+@njit(cache=True, fastmath=_FM, nogil=True)
+def derivatives_high(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
+    # derivatives for degree > 3 along v or w, whose loops cannot run over a padded 4.
+                       mode):
+    # Same contraction as values, carrying the value and the three partials in scalars
+    # (suffix 0: value; u, v, w: partials; x, y, z, h: channels).
+    rat = mode.ndim == 2
+    Nu = np.zeros(MAXP)
+    Nv = np.zeros(MAXP)
+    Nw = np.zeros(MAXP)
+    dNu = np.zeros(MAXP)
+    dNv = np.zeros(MAXP)
+    dNw = np.zeros(MAXP)
+    B = np.empty(MAXP)
+    for idx in range(start, stop):
+        i0 = fu[_basis(bu, hu, xu, pu, uvw[idx, 0], Nu, dNu, B)]
+        j0 = fv[_basis(bv, hv, xv, pv, uvw[idx, 1], Nv, dNv, B)]
+        k0 = fw[_basis(bw, hw, xw, pw, uvw[idx, 2], Nw, dNw, B)]
+        ax0 = ay0 = az0 = ah0 = 0.0
+        axu = ayu = azu = ahu = 0.0
+        axv = ayv = azv = ahv = 0.0
+        axw = ayw = azw = ahw = 0.0
+        for i in range(pu + 1):
+            bx0 = by0 = bz0 = bh0 = 0.0
+            bxv = byv = bzv = bhv = 0.0
+            bxw = byw = bzw = bhw = 0.0
+            for j in range(pv + 1):
+                cx0 = cy0 = cz0 = ch0 = 0.0
+                cxw = cyw = czw = chw = 0.0
+                for k in range(pw + 1):
+                    nk = Nw[k]
+                    dk = dNw[k]
+                    x = cp[i0 + i, j0 + j, k0 + k, 0]
+                    y = cp[i0 + i, j0 + j, k0 + k, 1]
+                    z = cp[i0 + i, j0 + j, k0 + k, 2]
+                    cx0 += nk * x
+                    cy0 += nk * y
+                    cz0 += nk * z
+                    cxw += dk * x
+                    cyw += dk * y
+                    czw += dk * z
+                    if rat:
+                        h = cp[i0 + i, j0 + j, k0 + k, 3]
+                        ch0 += nk * h
+                        chw += dk * h
+                nj = Nv[j]
+                dj = dNv[j]
+                bx0 += nj * cx0
+                by0 += nj * cy0
+                bz0 += nj * cz0
+                bh0 += nj * ch0
+                bxv += dj * cx0
+                byv += dj * cy0
+                bzv += dj * cz0
+                bhv += dj * ch0
+                bxw += nj * cxw
+                byw += nj * cyw
+                bzw += nj * czw
+                bhw += nj * chw
+            ni = Nu[i]
+            di = dNu[i]
+            ax0 += ni * bx0
+            ay0 += ni * by0
+            az0 += ni * bz0
+            ah0 += ni * bh0
+            axu += di * bx0
+            ayu += di * by0
+            azu += di * bz0
+            ahu += di * bh0
+            axv += ni * bxv
+            ayv += ni * byv
+            azv += ni * bzv
+            ahv += ni * bhv
+            axw += ni * bxw
+            ayw += ni * byw
+            azw += ni * bzw
+            ahw += ni * bhw
+        out[idx, 0] = ax0
+        out[idx, 1] = ay0
+        out[idx, 2] = az0
+        der[idx, 0, 0] = axu
+        der[idx, 1, 0] = ayu
+        der[idx, 2, 0] = azu
+        der[idx, 0, 1] = axv
+        der[idx, 1, 1] = ayv
+        der[idx, 2, 1] = azv
+        der[idx, 0, 2] = axw
+        der[idx, 1, 2] = ayw
+        der[idx, 2, 2] = azw
+        if rat:
+            out[idx, 3] = ah0
+            der[idx, 3, 0] = ahu
+            der[idx, 3, 1] = ahv
+            der[idx, 3, 2] = ahw
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
 def _extract4(x, b0, b1, b2, b3):
     """The 4x4 extraction matrix x applied to four Bernstein values (or derivatives)."""
     return (x[0, 0] * b0 + x[0, 1] * b1 + x[0, 2] * b2 + x[0, 3] * b3,
@@ -363,7 +418,7 @@ def _extract4(x, b0, b1, b2, b3):
             x[3, 0] * b0 + x[3, 1] * b1 + x[3, 2] * b2 + x[3, 3] * b3)
 
 
-@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+@njit(cache=True, fastmath=_FM, nogil=True)
 def _cubic(br, invh, ext, t):
     """Element of t (clamped) and its four cubic basis values, all in registers."""
     lo, s = _locate(br, invh, t)
@@ -373,10 +428,10 @@ def _cubic(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
+def values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
                         mode):
     # Tricubic volumes, the common case: every loop has constant length and every basis value is a scalar, so the
-    # whole contraction stays in registers (~1.5x over _block_values).
+    # whole contraction stays in registers (~1.5x over values).
     rat = mode.ndim == 2
     for idx in range(start, stop):
         eu, a0, a1, a2, a3 = _cubic(bu, hu, xu, uvw[idx, 0])
@@ -417,7 +472,7 @@ def _block_values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw
             out[idx, 3] = ah
 
 
-@njit(cache=True, fastmath=_FM, nogil=True, inline="always")
+@njit(cache=True, fastmath=_FM, nogil=True)
 def _cubic_der(br, invh, ext, t):
     """Element of t (clamped), its four cubic basis values and their four derivatives d/dt."""
     lo, s = _locate(br, invh, t)
@@ -431,9 +486,9 @@ def _cubic_der(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out,
+def derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out,
                              der, mode):
-    # _block_derivatives for tricubic volumes, with the basis values and derivatives in registers.
+    # derivatives for tricubic volumes, with the basis values and derivatives in registers.
     rat = mode.ndim == 2
     nch = 4 if rat else 3
     for idx in range(start, stop):
@@ -477,70 +532,22 @@ def _block_derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, b
             der[idx, ch, 2] = a_w
 
 
-# One serial and one parallel entry per kernel, chosen in Python by kernel_name: an entry that dispatched at run time
-# would make numba compile every kernel for every call signature (a cold first build took 3x longer).
-
-
-@njit(cache=True, fastmath=_FM, nogil=True)
-def values_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    _block_values(
-        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, parallel=True)
-def values_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    n = uvw.shape[0]
-    for b in prange((n + BLOCK - 1) // BLOCK):
-        _block_values(
-            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
-            out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, nogil=True)
-def derivatives_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    _block_derivatives(
-        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, parallel=True)
-def derivatives_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    n = uvw.shape[0]
-    for b in prange((n + BLOCK - 1) // BLOCK):
-        _block_derivatives(
-            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
-            out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, nogil=True)
-def values_cubic_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    _block_values_cubic(
-        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, parallel=True)
-def values_cubic_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    n = uvw.shape[0]
-    for b in prange((n + BLOCK - 1) // BLOCK):
-        _block_values_cubic(
-            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
-            out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, nogil=True)
-def derivatives_cubic_serial(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    _block_derivatives_cubic(
-        uvw, 0, uvw.shape[0], bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode)
-
-
-@njit(cache=True, fastmath=_FM, parallel=True)
-def derivatives_cubic_parallel(uvw, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
-    n = uvw.shape[0]
-    for b in prange((n + BLOCK - 1) // BLOCK):
-        _block_derivatives_cubic(
-            uvw, b * BLOCK, min(n, (b + 1) * BLOCK), bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp,
-            out, der, mode)
+# The four block functions are the entries, called from Python on [start, stop) of the points (volume.py splits large
+# batches over threads, which these nogil kernels allow). numba's prange entries cost a parfor compilation each and
+# made every block function compile twice (a literal and an int64 start): 16 versions and 38.8 s on a cold cache.
 
 
 def kernel_name(degrees, want_der):
-    """Which entries (name + '_serial' / '_parallel') evaluate a volume of these degrees."""
-    return ("derivatives" if want_der else "values") + ("_cubic" if tuple(degrees) == (3, 3, 3) else "")
+    """Which entry evaluates a volume of these degrees."""
+    kind = ""
+    if tuple(degrees) == (3, 3, 3):
+        kind = "_cubic"
+    elif degrees[1] > 3 or degrees[2] > 3:
+        kind = "_high"
+    return ("derivatives" if want_der else "values") + kind
+
+
+def kernel(degrees, want_der):
+    """The compiled entry for a volume of these degrees: fn(uvw, start, stop, *tables_u, *tables_v, *tables_w, pu, pv,
+    pw, cp, out, der, mode) fills out[start:stop] (and der[start:stop] for derivatives)."""
+    return globals()[kernel_name(degrees, want_der)]

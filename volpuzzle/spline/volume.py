@@ -14,10 +14,10 @@ from ..errors import ModelError
 from . import basis
 from . import knots as knots_mod
 
-_PARALLEL_MIN = 4096  # points; below this the serial kernel is faster than waking threads
+_PARALLEL_MIN = 4096  # points; below this one thread is faster than waking others
 _TINY = 256  # points; below this, and before the compiled kernels are loaded, use numpy
 _LOADED = set()
-_PARALLEL_PID = {}
+_POOL = {}
 _MODE = {3: np.empty(0), 4: np.empty((0, 0))}
 _FAST = []
 
@@ -31,6 +31,23 @@ def _fast_module():
             _fast = None
         _FAST.append(_fast)
     return _FAST[0]
+
+
+def _threads():
+    """This process's thread pool for large batches, or None off the main thread (callers that already run on
+    threads keep to theirs) or on one core. A forked child makes its own: threads do not survive a fork."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if workers < 2:
+        return None
+    pid = os.getpid()
+    if _POOL.get("pid") != pid:
+        from concurrent.futures import ThreadPoolExecutor
+
+        workers = min(workers, 8)
+        _POOL.update(pid=pid, workers=workers, pool=ThreadPoolExecutor(workers, thread_name_prefix="volpuzzle-spline"))
+    return _POOL["pool"]
 
 
 def _axis_index(axis):
@@ -176,7 +193,8 @@ class Volume:
     def _knet(self):
         # The compiled kernels' copy: zero-padded along v and w for their unrolled loops.
         fast = _fast_module()
-        return self._net if fast is None else fast.padded_net(self._net, self.degrees)
+        net = self._net if fast is None else fast.padded_net(self._net, self.degrees)
+        return np.require(net, np.float64, ["C", "W"])  # a read-only net would be another type, another compilation
 
     @cached_property
     def _tables(self):
@@ -193,26 +211,28 @@ class Volume:
         """Homogeneous (or Cartesian) sums at scattered points: (n, d) and, if asked, (n, d, 3)."""
         n = uvw.shape[0]
         d = self._net.shape[3]
-        # Small batches: threads cost more than they save; off the main thread: stay re-entrant.
-        parallel = n >= _PARALLEL_MIN and threading.current_thread() is threading.main_thread()
-        # GNU OpenMP (numba's threading layer here) is not fork-safe: a forked child of a process that has
-        # run the parallel kernel stays on the serial one.
-        if parallel:
-            parallel = _PARALLEL_PID.setdefault("pid", os.getpid()) == os.getpid()
-        kind = "parallel" if parallel else "serial"
         # A tiny first call should not pay for loading compiled code (seconds): numpy until it is loaded.
-        if n < _TINY and kind not in _LOADED:
+        if n < _TINY and not _LOADED:
             return self._numpy_sums(uvw, want_der)
         fast = _fast_module()
         if fast is None:
             return self._numpy_sums(uvw, want_der)
-        _LOADED.add(kind)
-        uvw = np.ascontiguousarray(uvw, dtype=float)
+        _LOADED.add(True)
+        # One array type per argument (C-contiguous, writable float64), so numba compiles one version per kernel.
+        uvw = np.require(uvw, np.float64, ["C", "W"])
         out = np.empty((n, d))
         der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
-        fn = getattr(fast, f"{fast.kernel_name(self.degrees, want_der)}_{kind}")
+        fn = fast.kernel(self.degrees, want_der)
         tu, tv, tw = self._tables
-        fn(uvw, *tu, *tv, *tw, *self.degrees, self._knet, out, der, _MODE[d])
+        args = (*tu, *tv, *tw, *(int(p) for p in self.degrees), self._knet, out, der, _MODE[d])
+        pool = _threads() if n >= _PARALLEL_MIN else None
+        if pool is None:
+            fn(uvw, 0, n, *args)
+        else:
+            # The kernels release the GIL: ranges of the points on threads, each point computed alone, so the bits
+            # do not depend on the split.
+            step = max(1024, -(-n // (4 * _POOL["workers"])))
+            list(pool.map(lambda s: fn(uvw, s, min(n, s + step), *args), range(0, n, step)))
         return out, (der if want_der else None)
 
     def _numpy_sums(self, uvw, want_der):

@@ -1,0 +1,79 @@
+"""`volpuzzle batch` on a real dask.distributed LocalCluster: each folder is the one `build` writes, a bad spec is
+one error line while the others go on, a summary table and the exit status at the end."""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from helpers_build import write_spec
+from volpuzzle.cli import cli
+from volpuzzle.pipeline import Progress, build
+
+
+def _small(name, seed):
+    return {"name": name, "model": {"builtin": {"type": "quarter-torus", "major_radius": 50, "minor_radius": 20}},
+            "grid": [2, 1, 1], "randomize": {"seed": seed, "amplitude": 0.2, "control_points": 4},
+            "output": {"tolerance": 0.5, "labels": False}}
+
+
+def _report_without_times(path):
+    """report.json less what a run measures (its times) and where it was written."""
+    report = json.loads(path.read_text(encoding="utf-8"))
+    del report["timings_s"], report["checks"]["overlap_time_s"], report["spec"]["output"]["directory"]
+    return report
+
+
+def _report_md_without_times(path):
+    lines = path.read_text(encoding="utf-8").splitlines()
+    start = lines.index(next(line for line in lines if line.lower().startswith("## tim")))
+    stop = next((k for k in range(start + 1, len(lines)) if lines[k].startswith("## ")), len(lines))
+    return lines[:start] + lines[stop:]
+
+
+@pytest.mark.slow
+def test_a_batch_builds_the_good_specs_as_build_does_and_reports_the_bad_one(tmp_path):
+    good = [write_spec(tmp_path, _small("small-a", 1), "a.yaml"), write_spec(tmp_path, _small("small-b", 3), "b.yaml")]
+    bad = write_spec(tmp_path, {**_small("broken", 1), "grid": [2, 0, 1]}, "broken.yaml")
+    result = CliRunner().invoke(cli, ["batch", str(good[0]), str(bad), str(good[1]), "-o", str(tmp_path / "batch"),
+                                      "--jobs", "2"])
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    lines = result.output.splitlines()
+    failed = [line for line in lines if "FAILED" in line]
+    assert len(failed) == 1 and failed[0].startswith("broken") and "grid" in failed[0] and "error:" in failed[0]
+    assert lines[-1] == "2 built, 1 failed"
+    assert not (tmp_path / "batch" / "broken").exists()
+    for spec, name in zip(good, ("small-a", "small-b")):
+        assert any(line.startswith(name) and " ok " in line for line in lines)
+        ours = tmp_path / "batch" / name
+        theirs = build(spec, output_dir=tmp_path / "build" / name, jobs=1, progress=Progress(False))
+        theirs = tmp_path / "build" / name
+        files = sorted(p.relative_to(theirs) for p in theirs.rglob("*") if p.is_file())
+        assert sorted(p.relative_to(ours) for p in ours.rglob("*") if p.is_file()) == files
+        assert any(str(f).startswith("pieces/") for f in files) and any(str(f).startswith("plates/") for f in files)
+        for f in files:
+            if f.name == "report.json":
+                assert _report_without_times(ours / f) == _report_without_times(theirs / f)
+            elif f.name == "report.md":
+                assert _report_md_without_times(ours / f) == _report_md_without_times(theirs / f)
+            else:
+                assert (ours / f).read_bytes() == (theirs / f).read_bytes(), f
+
+
+def test_two_specs_writing_one_folder_are_refused_before_any_work(tmp_path):
+    a = write_spec(tmp_path, _small("same", 1), "a.yaml")
+    b = write_spec(tmp_path, _small("same", 2), "b.yaml")
+    result = CliRunner().invoke(cli, ["batch", str(a), str(b), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1
+    assert result.output.strip().startswith("error: name:") and "same" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
+    a = write_spec(tmp_path, _small("alone", 1), "a.yaml")
+    result = CliRunner().invoke(cli, ["batch", str(a), "--scheduler", "tcp://127.0.0.1:9"])
+    assert result.exit_code == 1
+    assert result.output.strip().startswith("error: --scheduler: no Dask scheduler answers at tcp://127.0.0.1:9")
+    assert len(result.output.strip().splitlines()) == 1
