@@ -1,5 +1,6 @@
 """Runs the stages in order: spec -> model -> tile -> joint -> randomize -> verify -> compose -> check -> export."""
 
+import math
 import os
 import sys
 import time
