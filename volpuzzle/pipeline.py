@@ -78,6 +78,13 @@ def load_model_for(spec):
         vol, meta = make_builtin(ms.builtin), {"format": "builtin", "units": "mm"}
     elif ms.nurbs is not None:
         vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
+    elif ms.shell is not None:
+        from .shell import load_shell
+
+        # the thickness is mm of the printed object, so the surface is sized before it is offset
+        shell, scale, meta = load_shell(ms.shell, ms.unit_scale, ms.size, spec.output.tolerance)
+        return Model(shell.volume, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale,
+                                           "shell": shell.info})
     else:
         return _load_mesh_model(spec)
     scale = ms.unit_scale
@@ -155,6 +162,11 @@ def prepare(spec, timer=None, progress=None):
     with timer("load", progress):
         model = load_model_for(spec)
     vol = model.volume
+    closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
+    if closed:  # a shell's closed direction is periodic whether or not the spec says so
+        import dataclasses
+
+        spec = dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))
     with timer("verify", progress):
         model_check = verify_model(vol)
     seams, all_seams = _seams_for(spec, vol)
