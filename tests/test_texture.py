@@ -46,8 +46,8 @@ def test_sahara_is_sand_and_the_pacific_blue_in_a_strict_3mf(tmp_path):
     path = write_3mf(tmp_path / "t.3mf", objs, colors=[colors[p.id] for p in pieces])
     assert len(read_3mf(path, strict=True)) == 3  # strict mode: no warnings
     got = read_triangle_colors(path, strict=True)
-    sand = got["sahara"].astype(float).mean(axis=0)
-    sea = got["pacific"].astype(float).mean(axis=0)
+    sand = got["sahara"].astype(float).reshape(-1, 3).mean(axis=0)
+    sea = got["pacific"].astype(float).reshape(-1, 3).mean(axis=0)
     assert sand[0] > sand[2] + 30 and sand[1] > sand[2]  # yellow-brown
     assert sea[2] > sea[0] + 20  # blue
     assert np.all(got["inside"] == own["inside"])
@@ -84,4 +84,4 @@ def test_stl_output_says_it_cannot_hold_colour(tmp_path, capsys):
     assert "warning: texture: STL cannot hold colour" in capsys.readouterr().err
     spec3 = dataclasses.replace(spec, output=dataclasses.replace(spec.output, format="3mf"))
     assert "note" not in _texture(spec3, stages, pieces, 0.2, Timer(), None)[1]
-    assert colors["sahara"].shape == (len(pieces[0].mesh.faces), 3)
+    assert colors["sahara"].shape == (len(pieces[0].mesh.faces), 3, 3)

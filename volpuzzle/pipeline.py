@@ -557,9 +557,9 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None):
         extras[pl.file] = write_plate
     shown = colors
     if texture is not None:
-        from .texture import blend
+        from .texture import face_colors
 
-        shown = [blend(c, texture[p.id]) for p, c in zip(pieces, colors)]
+        shown = [face_colors(c, texture[p.id]) for p, c in zip(pieces, colors)]
     extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], shown, title=spec.name)
     return placements, plates, extras
 

@@ -86,15 +86,19 @@ def image_colors(image, st):
 
 
 def triangle_colors(sampling, tree, image, mesh, tolerance):
-    """Per-triangle colours of one piece -> (m, 3) int16: the image colour on the textured surface, -1 elsewhere
-    (the piece's own material)."""
+    """Colours at the corners of each triangle of one piece -> (m, 3 corners, 3) int16: the image colour on the
+    textured surface, -1 elsewhere (the piece's own material). Corner colours let a reader blend across a triangle,
+    so the picture is finer than the tessellation."""
     centres = np.asarray(mesh.triangles_center)
     normals = np.asarray(mesh.face_normals)
     dist, idx = tree.query(centres, k=1)
     on = (dist <= 2 * tolerance + sampling.step) & (np.einsum("ni,ni->n", normals, sampling.normals[idx]) > _FACING)
-    out = np.full((len(centres), 3), -1, dtype=np.int16)
+    out = np.full((len(centres), 3, 3), -1, dtype=np.int16)
     if np.any(on):
-        out[on] = image_colors(image, sampling.st[idx[on]])
+        corners = np.asarray(mesh.faces)[on]
+        used, inverse = np.unique(corners, return_inverse=True)
+        _, vidx = tree.query(np.asarray(mesh.vertices)[used], k=1)
+        out[on] = image_colors(image, sampling.st[vidx])[inverse.reshape(-1)].reshape(-1, 3, 3)
     return out
 
 
@@ -106,16 +110,21 @@ def texture_pieces(texture, vol, pieces, tolerance):
     sampling = sample_face(vol, texture.face, texture.transpose)
     tree = cKDTree(sampling.xyz)
     out = {p.id: triangle_colors(sampling, tree, image, p.mesh, tolerance) for p in pieces}
-    textured = sum(int(np.count_nonzero(c[:, 0] >= 0)) for c in out.values())
+    textured = sum(int(np.count_nonzero(c[:, 0, 0] >= 0)) for c in out.values())
     total = sum(len(c) for c in out.values())
     report = {"image": str(texture.image), "face": texture.face, "transpose": texture.transpose,
               "image_size": [int(image.shape[1]), int(image.shape[0])],
               "textured_triangles": textured, "triangles": total, "sampling_step_mm": sampling.step,
-              "3mf": "per-triangle colours in a 3MF colour group (materials extension)"}
+              "3mf": "colours at triangle corners in a 3MF colour group (materials extension)"}
     return out, report
 
 
 def blend(piece_rgb, colors):
-    """(m, 3) display colours of a piece: its texture colours, and its own colour where there is none."""
+    """(m, 3, 3) corner colours of a piece: its texture colours, and its own colour where there is none."""
     c = np.asarray(colors)
-    return np.where(c >= 0, c, np.asarray(piece_rgb)[None, :]).astype(np.uint8)
+    return np.where(c >= 0, c, np.asarray(piece_rgb)).astype(np.uint8)
+
+
+def face_colors(piece_rgb, colors):
+    """(m, 3) one colour per triangle (the mean of its corners), for pictures."""
+    return np.round(blend(piece_rgb, colors).mean(axis=1)).astype(np.uint8)

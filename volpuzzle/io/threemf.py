@@ -108,7 +108,7 @@ def _set_triangle_materials(L, w, mesh_obj, resource_id, pids: np.ndarray) -> No
     """resource_id: one resource for all triangles, or (m,) one per triangle."""
     props = np.zeros(len(pids), dtype=_TRI_PROPS)
     props["rid"] = resource_id
-    props["pids"] = pids[:, None]
+    props["pids"] = pids if pids.ndim == 2 else pids[:, None]
     buf = (L.TriangleProperties * len(props)).from_buffer(props)
     w.checkError(mesh_obj, w.lib.lib3mf_meshobject_setalltriangleproperties(
         mesh_obj._handle, ctypes.c_uint64(len(props)), buf))
@@ -141,8 +141,8 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,
     transform (3, 4) [R | t] | None). materials: None, or per object None | (m,) int array marking each
     triangle 0 = the object's colour, 1 = the second material (accent_rgb, e.g. pins).
-    colors: None, or per object None | (m, 3) int array of per-triangle colours (a texture), rows of -1 where the
-    triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
+    colors: None, or per object None | (m, 3) int array of per-triangle colours or (m, 3 corners, 3) colours at the
+    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
     triangles reference; the object keeps its base material for slicers that only read that.
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
@@ -160,7 +160,7 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
 
 
 def _color_ids(L, w, cache, rgb):
-    """Colour-group property ids for (m, 3) colours, adding each distinct colour once to the file's group."""
+    """Colour-group property ids for (k, 3) colours, adding each distinct colour once to the file's group."""
     group, ids = cache["group"], cache["ids"]
     keys = (rgb[:, 0].astype(np.int64) << 16) | (rgb[:, 1].astype(np.int64) << 8) | rgb[:, 2].astype(np.int64)
     uniq, inverse = np.unique(keys, return_inverse=True)
@@ -211,19 +211,21 @@ def _write_model(path, objects, unit, materials, accent_rgb, colors=None) -> Non
             if mat is not None or tex is not None:
                 if own_pid is None:
                     raise ExportError(f"{path}: object {name!r}: per-triangle colours need the object's own colour too")
-                pids = np.full(len(f), own_pid, dtype=np.uint32)
+                pids = np.full((len(f), 3), own_pid, dtype=np.uint32)
                 if mat is not None:
-                    pids = np.where(mat == 1, accent_pid, own_pid).astype(np.uint32)
+                    pids[:] = np.where(mat == 1, accent_pid, own_pid).astype(np.uint32)[:, None]
                 rids = np.full(len(f), group.GetResourceID(), dtype=np.uint32)
                 if tex is not None:
                     tex = np.asarray(tex)
-                    if tex.shape != (len(f), 3) or tex.max(initial=0) > 255:
-                        raise ExportError(f"{path}: object {name!r}: colors must be ({len(f)}, 3) values in 0..255 "
-                                          f"or -1, got shape {tex.shape}")
-                    on = tex[:, 0] >= 0
+                    if tex.shape == (len(f), 3):
+                        tex = np.repeat(tex[:, None, :], 3, axis=1)
+                    if tex.shape != (len(f), 3, 3) or tex.max(initial=0) > 255:
+                        raise ExportError(f"{path}: object {name!r}: colors must be ({len(f)}, 3) or ({len(f)}, 3, 3) "
+                                          f"values in 0..255 or -1, got shape {tex.shape}")
+                    on = tex[:, 0, 0] >= 0
                     if np.any(on):
-                        rid, cpid = _color_ids(L, w, color_cache, tex[on])
-                        rids[on], pids[on] = rid, cpid
+                        rid, cpid = _color_ids(L, w, color_cache, tex[on].reshape(-1, 3))
+                        rids[on], pids[on] = rid, cpid.reshape(-1, 3)
                 _set_triangle_materials(L, w, mesh_obj, rids, pids)
             item = model.AddBuildItem(mesh_obj, _transform(L, transform))
             item.SetUUID(str(uuid.uuid5(_NAMESPACE, f"item/{k}/{name}")))
@@ -319,8 +321,8 @@ def _read_model(path, strict, with_units):
 
 
 def read_triangle_colors(path, strict: bool = True):
-    """The display colour of every triangle of every build item -> {object name: (m, 3) uint8}: from its colour-group
-    or base-material property, else the object's own colour (grey when it has none)."""
+    """The display colour at the corners of every triangle of every build item -> {object name: (m, 3, 3) uint8}: from
+    its colour-group or base-material property, else the object's own colour (grey when it has none)."""
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"{path}: no such 3MF file")
@@ -344,9 +346,10 @@ def read_triangle_colors(path, strict: bool = True):
             w.checkError(mesh_obj, w.lib.lib3mf_meshobject_getalltriangleproperties(
                 mesh_obj._handle, ctypes.c_uint64(n), needed, (L.TriangleProperties * n).from_buffer(props)))
             own = _object_rgb(model, mesh_obj)
-            rgb = np.tile(np.array((128, 128, 128) if own is None else own, np.uint8), (n, 1))
+            rgb = np.tile(np.array((128, 128, 128) if own is None else own, np.uint8), (n, 3, 1))
+            rid_corner = np.repeat(props["rid"][:, None], 3, axis=1)
             lookup = {}
-            for rid, pid in set(zip(props["rid"].tolist(), props["pids"][:, 0].tolist())):
+            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist())):
                 if rid == 0:
                     continue
                 try:
@@ -358,6 +361,6 @@ def read_triangle_colors(path, strict: bool = True):
                         continue
                 lookup[(rid, pid)] = (c.Red, c.Green, c.Blue)
             for key, c in lookup.items():
-                rgb[(props["rid"] == key[0]) & (props["pids"][:, 0] == key[1])] = c
+                rgb[(rid_corner == key[0]) & (props["pids"] == key[1])] = c
             out[mesh_obj.GetName()] = rgb
         return out
