@@ -66,6 +66,10 @@ def test_texture_spec_key(tmp_path):
     with pytest.raises(SpecError, match=r"texture.face: .*got 'outside'"):
         load_spec_text("name: e\nmodel: {builtin: sphere-shell}\ngrid: [2, 2, 1]\n"
                        "texture: {image: e.png, face: outside}\n", tmp_path / "s.yaml")
+    (tmp_path / "m.stl").write_bytes(trimesh.creation.box().export(file_type="stl"))
+    with pytest.raises(SpecError, match=r"texture: not for a mesh model \(got a texture with model.mesh"):
+        load_spec_text("name: e\nmodel: {mesh: m.stl}\ngrid: [2, 2, 1]\ntexture: {image: e.png}\n",
+                       tmp_path / "s.yaml")
 
 
 def test_stl_output_says_it_cannot_hold_colour(tmp_path, capsys):

@@ -770,6 +770,10 @@ def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     joints = c.joints(top.get("joints"))
     output = c.output(top.get("output"), name)
     texture = c.texture(top.get("texture"))
+    if texture is not None and model is not None and model.mesh is not None:
+        # the faces of a cage around a mesh are not the mesh's surface: nothing would take the colours
+        c.bad("texture", "not for a mesh model", "a texture with model.mesh",
+              "texture only with model.nurbs, model.builtin or model.shell")
     if c.problems:
         raise SpecError(c.problems, source=source)
     return Spec(name=name, model=model, grid=grid, splits=splits, periodic=periodic, randomize=randomize,
