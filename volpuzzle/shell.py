@@ -205,13 +205,22 @@ def distance_to(surf, x, uv, iterations=12):
     (clamped to the domain) -> (n,)."""
     dom = np.array(surf.domain)
     uv = np.array(uv, dtype=float)
+    active = np.arange(len(uv))
+    tiny = 1e-9 * np.max(dom[:, 1] - dom[:, 0])  # about 1e-7 mm on the surface
     for _ in range(iterations):
-        p, d = surf.evaluate_with_derivatives(uv)
-        r = p - x
-        jtj = np.einsum("nik,nil->nkl", d, d)
-        jtj += 1e-12 * np.trace(jtj, axis1=1, axis2=2)[:, None, None] * np.eye(2)  # a pole: S_v = 0
-        step = np.linalg.solve(jtj, np.einsum("nik,ni->nk", d, r)[..., None])[..., 0]
-        uv = np.clip(uv - step, dom[:, 0], dom[:, 1])
+        p, d = surf.evaluate_with_derivatives(uv[active])
+        r = p - x[active]
+        su, sv = d[:, :, 0], d[:, :, 1]
+        a, b, c = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
+        ru, rv = (su * r).sum(1), (sv * r).sum(1)
+        reg = 1e-12 * (a + c)  # a pole: S_v = 0
+        a, c = a + reg, c + reg
+        det = a * c - b * b
+        step = np.stack([(c * ru - b * rv) / det, (a * rv - b * ru) / det], 1)
+        uv[active] = np.clip(uv[active] - step, dom[:, 0], dom[:, 1])
+        active = active[np.max(np.abs(step), axis=1) > tiny]  # converged points stop
+        if not len(active):
+            break
     return np.linalg.norm(surf.evaluate(uv) - x, axis=1)
 
 
