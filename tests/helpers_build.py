@@ -22,6 +22,10 @@ def example_spec(name, tmp_path, tolerance=1.0, grid=None, **overrides):
             model[key] = str((REPO / "specs" / model[key]).resolve())
     if isinstance(model.get("cage"), dict) and "nurbs" in model["cage"]:
         model["cage"]["nurbs"] = str((REPO / "specs" / model["cage"]["nurbs"]).resolve())
+    if isinstance(model.get("shell"), dict):
+        model["shell"]["surface"] = str((REPO / "specs" / model["shell"]["surface"]).resolve())
+    if isinstance(spec.get("texture"), dict):
+        spec["texture"]["image"] = str((REPO / "specs" / spec["texture"]["image"]).resolve())
     spec.setdefault("output", {})["tolerance"] = tolerance
     spec["output"]["directory"] = str(tmp_path / "out" / name)
     if grid is not None:

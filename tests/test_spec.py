@@ -303,12 +303,12 @@ def test_name_with_other_characters(folder):
 
 def test_model_with_two_sources(folder):
     p = only_problem(folder, merged({"model": {"builtin": {"type": "duck-shell"}}}), "model")
-    assert "more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh)" in p
+    assert "more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh, shell)" in p
 
 
 def test_model_with_no_source(folder):
     p = only_problem(folder, merged({"model": {"units": "mm"}}, drop=["model.nurbs"]), "model")
-    assert "no model source (got none of them, expected exactly one of nurbs, builtin, mesh)" in p
+    assert "no model source (got none of them, expected exactly one of nurbs, builtin, mesh, shell)" in p
 
 
 def test_patch_only_with_nurbs(folder):

@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 
 from .errors import ExportError, VolpuzzleError
-from .io.threemf import write_3mf
+from .io.threemf import DEFAULT_ACCENT, write_3mf
 
 __all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md",
            "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries"]
@@ -225,12 +225,13 @@ def render_report_md(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pins=None) -> None:
+def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pins=None, tex=None) -> None:
     if fmt == "stl":
         # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes.
         path.write_bytes(trimesh.exchange.stl.export_stl(mesh))
     else:
-        write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)], materials=[pins])
+        write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)], materials=[pins],
+                  colors=None if tex is None else [tex])
 
 
 def _marker_text(pid=None) -> str:
@@ -402,13 +403,15 @@ def _free_space_problem(parent: Path, items) -> str | None:
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
                 dowels: Sequence = (), colors: Optional[np.ndarray] = None,
                 extras: Optional[Mapping[str, Callable[[Path], None]]] = None,
-                pin_triangles: Optional[Mapping[str, np.ndarray]] = None) -> Path:
+                pin_triangles: Optional[Mapping[str, np.ndarray]] = None,
+                triangle_colors: Optional[Mapping[str, np.ndarray]] = None) -> Path:
     """Write the output folder (SPEC section 5) atomically -> the target path.
 
     pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.
     colors: (n, 3) uint8 per piece, default piece_colors(n). extras: {relative path: writer(path)} for
     files produced elsewhere (plates, preview), called inside the temporary folder. pin_triangles: {piece id:
-    (m,) 0/1 per triangle}, 1 on a pin: 3MF files give those triangles the second (pin) material.
+    (m,) 0/1 per triangle}, 1 on a pin: 3MF files give those triangles the second (pin) material. triangle_colors:
+    {piece id: (m, 3) per-triangle colours, -1 rows where the piece colour stays} (a texture), for 3MF files.
     Raises ExportError when the target exists without force, or on any failed write.
     """
     t0 = time.perf_counter()
@@ -469,12 +472,14 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         # the largest file first, so that the worker is busy from the start
         write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
               [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors)], "millimeter",
-              [(pin_triangles or {}).get(pid) for pid, _ in items])
+              [(pin_triangles or {}).get(pid) for pid, _ in items], DEFAULT_ACCENT,
+              None if triangle_colors is None else [triangle_colors.get(pid) for pid, _ in items])
         entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
         piece_entries = []
         for (pid, mesh), piece, rgb in zip(items, pieces, colors):
             rel = f"pieces/{pid}.{fmt}"
-            write(tmp / rel, _write_piece, tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid))
+            write(tmp / rel, _write_piece, tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid),
+                  (triangle_colors or {}).get(pid))
             entry = entries.get(pid) or report_piece_entry(piece, rel)
             entry["file"] = rel
             piece_entries.append(entry)

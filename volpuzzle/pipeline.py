@@ -78,6 +78,13 @@ def load_model_for(spec):
         vol, meta = make_builtin(ms.builtin), {"format": "builtin", "units": "mm"}
     elif ms.nurbs is not None:
         vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
+    elif ms.shell is not None:
+        from .shell import load_shell
+
+        # the thickness is mm of the printed object, so the surface is sized before it is offset
+        shell, scale, meta = load_shell(ms.shell, ms.unit_scale, ms.size, spec.output.tolerance)
+        return Model(shell.volume, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale,
+                                           "shell": shell.info})
     else:
         return _load_mesh_model(spec)
     scale = ms.unit_scale
@@ -160,6 +167,11 @@ def prepare(spec, timer=None, progress=None):
         model = load_model_for(spec)
         check_model_limits(spec, model.volume)
     vol = model.volume
+    closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
+    if closed:  # a shell's closed direction is periodic whether or not the spec says so
+        import dataclasses
+
+        spec = dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))
     with timer("verify", progress):
         model_check = verify_model(vol)
     seams, all_seams = _seams_for(spec, vol)
@@ -327,8 +339,9 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
                          randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
+    texture, texture_report = _texture(spec, stages, pieces, tolerance, timer, progress)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins)
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, texture)
     ext = spec.output.format
     plate_of = {pl.name: pl.plate for pl in placements}
     entries = []
@@ -354,10 +367,12 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     }
     if mesh_report is not None:
         report["mesh"] = mesh_report
+    if texture_report is not None:
+        report["texture"] = texture_report
     with timer("export", progress):
         report["timings_s"] = timer.timings
         write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras,
-                    pin_triangles=pins)
+                    pin_triangles=pins, triangle_colors=texture)
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
@@ -489,7 +504,22 @@ def pin_triangles(pieces, joints):
     return out
 
 
-def _layout(spec, pieces, dowels, joints, colors, pins=None):
+def _texture(spec, stages, pieces, tolerance, timer, progress):
+    """Per-triangle texture colours of every piece, or (None, None) without a texture."""
+    if spec.texture is None:
+        return None, None
+    from .texture import texture_pieces
+
+    with timer("texture", progress):
+        colors, report = texture_pieces(spec.texture, stages["model"].volume, pieces, tolerance)
+    if spec.output.format == "stl":
+        report["note"] = ("STL cannot hold colour: the pieces/*.stl files are plain; the texture is in puzzle.3mf, "
+                          "the plates and preview.png (output.format: 3mf gives coloured piece files too)")
+        print(f"warning: texture: {report['note']}", file=sys.stderr)
+    return colors, report
+
+
+def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
     from .joint import piece_id
@@ -515,9 +545,15 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None):
                 m = meshes[place.name]
                 v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
                 objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
-            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs])
+            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
+                      colors=None if texture is None else [texture.get(o[0]) for o in objs])
         extras[pl.file] = write_plate
-    extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], colors, title=spec.name)
+    shown = colors
+    if texture is not None:
+        from .texture import face_colors
+
+        shown = [face_colors(c, texture[p.id]) for p, c in zip(pieces, colors)]
+    extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], shown, title=spec.name)
     return placements, plates, extras
 
 

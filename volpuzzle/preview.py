@@ -28,6 +28,18 @@ def _simplified(mesh, faces=1500):
     return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
 
 
+def _part(mesh, rgb):
+    """(vertices, faces, colour) simplified; per-triangle colours (m, 3) follow to the nearest original triangle."""
+    rgb = np.asarray(rgb)
+    v, f = _simplified(mesh, 8000 if rgb.ndim == 2 else 1500)  # a texture needs more triangles to show
+    if rgb.ndim == 2 and len(f) != len(mesh.faces):
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(mesh.triangles_center).query(v[f].mean(axis=1))
+        rgb = rgb[idx]
+    return v, f, rgb
+
+
 def _view_axes():
     """(right, up, toward the eye) unit vectors of the screen, in world coordinates."""
     eye = np.array([np.cos(ELEV) * np.cos(AZIM), np.cos(ELEV) * np.sin(AZIM), np.sin(ELEV)])
@@ -46,7 +58,9 @@ def _visible(parts, offsets):
         front = n @ eye > 0  # closed pieces: the back faces are hidden behind the front ones anyway
         shade = 0.35 + 0.65 * np.clip(n[front] @ LIGHT, 0, 1)
         tris.append(t[front])
-        cols.append(np.clip(np.asarray(rgb, float)[None, :] / 255.0 * shade[:, None], 0, 1))
+        c = np.asarray(rgb, float)
+        c = c[front] if c.ndim == 2 else c[None, :]  # (m, 3) per triangle (a texture) or one colour
+        cols.append(np.clip(c / 255.0 * shade[:, None], 0, 1))
     return np.concatenate(tris), np.concatenate(cols)
 
 
@@ -90,12 +104,13 @@ def _text(draw, cx, top, text, size):
 
 
 def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=None):
-    """Write a PNG: left the assembled puzzle, right exploded. meshes: list of Trimesh in mm; colors (n, 3) uint8."""
+    """Write a PNG: left the assembled puzzle, right exploded. meshes: list of Trimesh in mm; colors (n, 3) uint8, or
+    per mesh (m, 3) per-triangle colours (a texture)."""
     from PIL import Image, ImageDraw
 
     k = SUPERSAMPLE
     w, h = size[0] * k, size[1] * k
-    parts = [(*_simplified(m), rgb) for m, rgb in zip(meshes, colors)]
+    parts = [_part(m, rgb) for m, rgb in zip(meshes, colors)]
     centers = np.array([m.centroid for m in meshes])
     exploded = (centers - centers.mean(axis=0)) * explode
     img = Image.new("RGB", (w, h), (255, 255, 255))

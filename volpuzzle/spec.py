@@ -27,7 +27,7 @@ from .limits import LIMIT_HELP, Limits
 
 __all__ = [
     "AXES", "UNIT_SCALE", "MESH_SUFFIXES", "NURBS_SUFFIXES", "CAGE_TYPES",
-    "ModelSpec", "CageSpec", "RandomizeSpec", "JointSpec", "OutputSpec", "Spec",
+    "ModelSpec", "CageSpec", "ShellSpec", "TextureSpec", "RandomizeSpec", "JointSpec", "OutputSpec", "Spec",
     "load_spec", "load_spec_text", "with_overrides", "spec_to_dict",
 ]
 
@@ -35,6 +35,9 @@ AXES = ("u", "v", "w")
 UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}  # mm per model unit
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 NURBS_SUFFIXES = (".json", ".xml", ".itd")
+SURFACE_SUFFIXES = (".nurbs", ".json", ".xml", ".itd")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+TEXTURE_FACES = ("u_min", "u_max", "v_min", "v_max", "w_min", "w_max")
 CAGE_TYPES = ("box", "cylinder", "sphere")
 JOINT_STYLES = ("pin", "dowel", "none")
 JOINT_ALLOW = ("loose", "welded")
@@ -49,8 +52,11 @@ _YAML11_FLOAT = re.compile(r"[-+]?[0-9]+(\.[0-9]*)?[eE][-+]?[0-9]+")
 _MAX_CLEARANCE = 2.0  # mm: print clearances are tenths of a millimetre; more leaves the pin loose in its hole
 _NAME_MAX = 100
 
-_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "limits")
-_MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "cage", "units", "size", "repair")
+_TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "texture",
+             "limits")
+_MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "shell", "cage", "units", "size", "repair")
+_SHELL_KEYS = ("surface", "thickness", "patch")
+_TEXTURE_KEYS = ("image", "face", "transpose")
 _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
 _JOINT_KEYS = ("style", "shape", "radius", "length", "clearance", "axial_clearance", "space", "min_radius",
@@ -76,12 +82,30 @@ class CageSpec:
 
 
 @dataclass(frozen=True)
+class ShellSpec:
+    """A thick shell inside a NURBS surface: thickness in mm of the printed (sized) object."""
+    surface: Path
+    thickness: float
+    patch: int = 0
+
+
+@dataclass(frozen=True)
+class TextureSpec:
+    """An image on one boundary face of the model, through the two other parameters: image rows follow the first
+    of them (top = its minimum), columns the second (left = its minimum); transpose swaps that."""
+    image: Path
+    face: str = "w_max"
+    transpose: bool = False
+
+
+@dataclass(frozen=True)
 class ModelSpec:
-    """Exactly one of nurbs / builtin / mesh is set. unit_scale is mm per model unit."""
+    """Exactly one of nurbs / builtin / mesh / shell is set. unit_scale is mm per model unit."""
     nurbs: Path | None = None
     patch: int = 0
     builtin: dict | None = None
     mesh: Path | None = None
+    shell: ShellSpec | None = None
     cage: CageSpec | None = None
     units: str = "mm"
     unit_scale: float = 1.0
@@ -135,6 +159,7 @@ class Spec:
     joints: JointSpec = field(default_factory=JointSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
     limits: Limits = field(default_factory=Limits)
+    texture: TextureSpec | None = None
     source: Path | None = None
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
@@ -355,16 +380,17 @@ class _Checker:
         m = self.mapping("model", value, _MODEL_KEYS, allow_none=False)
         if m is None:
             return None
-        sources = [k for k in ("nurbs", "builtin", "mesh") if k in m]
+        sources = [k for k in ("nurbs", "builtin", "mesh", "shell") if k in m]
         if len(sources) != 1:
             got = " and ".join(sources) if sources else "none of them"
             self.bad("model", "more than one model source" if sources else "no model source", got,
-                     "exactly one of nurbs, builtin, mesh")
+                     "exactly one of nurbs, builtin, mesh, shell")
         kind = sources[0] if len(sources) == 1 else None
 
         nurbs = self.file("model.nurbs", m["nurbs"], NURBS_SUFFIXES, "a NURBS volume") if "nurbs" in m else None
         mesh = self.file("model.mesh", m["mesh"], MESH_SUFFIXES, "a closed mesh") if "mesh" in m else None
         builtin = self.builtin(m["builtin"]) if "builtin" in m else None
+        shell = self.shell(m["shell"]) if "shell" in m else None
 
         patch = 0
         if "patch" in m:
@@ -389,8 +415,42 @@ class _Checker:
                      "model.repair only together with model.mesh")
         if kind == "mesh" and cage is None:
             cage = CageSpec(type="box")
-        return ModelSpec(nurbs=nurbs, patch=patch, builtin=builtin, mesh=mesh, cage=cage, units=units,
+        return ModelSpec(nurbs=nurbs, patch=patch, builtin=builtin, mesh=mesh, shell=shell, cage=cage, units=units,
                          unit_scale=UNIT_SCALE[units], size=size, repair=bool(repair))
+
+    def shell(self, value):
+        sh = self.mapping("model.shell", value, _SHELL_KEYS, allow_none=False)
+        if sh is None:
+            return None
+        ok = True
+        for key in ("surface", "thickness"):
+            if key not in sh:
+                self.bad(f"model.shell.{key}", "missing", "nothing",
+                         "a surface file" if key == "surface" else "the wall thickness in mm, e.g. 4")
+                ok = False
+        surface = (self.file("model.shell.surface", sh["surface"], SURFACE_SUFFIXES, "a NURBS surface")
+                   if "surface" in sh else None)
+        thickness = self.number("model.shell.thickness", sh["thickness"], above=0) if "thickness" in sh else None
+        patch = self.integer("model.shell.patch", sh.get("patch", 0), 0)
+        if not ok or surface is None or thickness is None or patch is None:
+            return None
+        return ShellSpec(surface=surface, thickness=float(thickness), patch=int(patch))
+
+    def texture(self, value):
+        if value is None:
+            return None
+        t = self.mapping("texture", value, _TEXTURE_KEYS, allow_none=False)
+        if t is None:
+            return None
+        if "image" not in t:
+            self.bad("texture.image", "missing", "nothing", "an image file (.jpg or .png)")
+            return None
+        image = self.file("texture.image", t["image"], IMAGE_SUFFIXES, "an image")
+        face = self.enum("texture.face", t.get("face", "w_max"), TEXTURE_FACES)
+        transpose = self.boolean("texture.transpose", t.get("transpose", False))
+        if image is None or face is None or transpose is None:
+            return None
+        return TextureSpec(image=image, face=face, transpose=bool(transpose))
 
     def builtin(self, value):
         if isinstance(value, str):  # `builtin: twisted-torus` is shorthand for {type: twisted-torus}
@@ -671,7 +731,7 @@ class _Checker:
 
 _REQUIRED_HELP = {
     "name": "a name of letters, digits, '-' and '_'",
-    "model": "a mapping with one of nurbs, builtin, mesh",
+    "model": "a mapping with one of nurbs, builtin, mesh, shell",
     "grid": "3 integers [u, v, w], each >= 1",
 }
 
@@ -791,10 +851,15 @@ def _check(data: dict, source: Path, problems: list[str]) -> Spec:
     joints = c.joints(top.get("joints"))
     output = c.output(top.get("output"), name)
     limits = c.limits(top.get("limits"))
+    texture = c.texture(top.get("texture"))
+    if texture is not None and model is not None and model.mesh is not None:
+        # the faces of a cage around a mesh are not the mesh's surface: nothing would take the colours
+        c.bad("texture", "not for a mesh model", "a texture with model.mesh",
+              "texture only with model.nurbs, model.builtin or model.shell")
     if c.problems:
         raise SpecError(c.problems, source=source)
     return Spec(name=name, model=model, grid=grid, splits=splits, periodic=periodic, randomize=randomize,
-                joints=joints, output=output, limits=limits, source=source, raw=data)
+                joints=joints, output=output, texture=texture, limits=limits, source=source, raw=data)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -837,6 +902,8 @@ def spec_to_dict(spec: Spec) -> dict:
         model.update(nurbs=str(m.nurbs), patch=m.patch)
     elif m.builtin is not None:
         model["builtin"] = dict(m.builtin)
+    elif m.shell is not None:
+        model["shell"] = {"surface": str(m.shell.surface), "thickness": m.shell.thickness, "patch": m.shell.patch}
     elif m.mesh is not None:
         model["mesh"] = str(m.mesh)
         cage = m.cage or CageSpec(type="box")
@@ -862,6 +929,8 @@ def spec_to_dict(spec: Spec) -> dict:
                    "min_radius": j.min_radius, "min_length": j.min_length, "allow": list(j.allow)},
         "output": {"directory": None if o.directory is None else str(o.directory), "format": o.format,
                    "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels},
+        **({} if spec.texture is None else {"texture": {"image": str(spec.texture.image), "face": spec.texture.face,
+                                                         "transpose": spec.texture.transpose}}),
     }
     raised = {k: getattr(spec.limits, k) for k in LIMIT_HELP if getattr(spec.limits, k) != getattr(Limits(), k)}
     if raised:

@@ -4,6 +4,9 @@ Each format module exposes NAME, EXTENSIONS, `detect(path, head: bytes) -> bool`
 meta dict)`. Detection goes by content first (the first HEAD_BYTES of the file) and falls back to the extension, so
 a renamed file still loads and a mislabelled one is not misread.
 
+Surfaces (for `model.shell`) go through the same registry: a format module that can hold surfaces also exposes
+`read_surfaces(path) -> (list[Surface], meta dict)`.
+
 Every failure is a ModelError whose message starts with the file path and names the field at fault.
 """
 
@@ -142,11 +145,35 @@ def _volume_clamped(degrees, knots, points, weights):
     return vol
 
 
+_SLAB_KNOTS = np.array([0.0, 0.0, 1.0, 1.0])
+
+
+def make_surface(path, degrees, knots, points, weights=None, label=""):
+    """Build a Surface from parsed data, as make_volume does (floating knot vectors clamped, errors prefixed).
+    points (n_u, n_v, 3) Cartesian, weights (n_u, n_v) or None."""
+    from ..spline.surface import Surface
+
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        where = f"{label}: " if label else ""
+        raise fail(path, "", f"{where}control points: expected shape (n_u, n_v, 3), got {pts.shape}")
+    w = None if weights is None else np.stack([np.asarray(weights, float)] * 2, axis=2)
+    # the surface as the w = 0 slab of a volume of degree 1 along w: one home for validation and clamping
+    vol = make_volume(path, list(degrees) + [1], list(knots) + [_SLAB_KNOTS], np.stack([pts, pts], axis=2), w, label)
+    return Surface.from_volume_slab(vol)
+
+
 # --- registry ---------------------------------------------------------------------------------------------------
 def _formats():
-    from . import geomdl_json, gismo, irit, vpjson
+    from . import geomdl_json, gismo, irit, nurbs_text, vpjson
 
-    return [vpjson, geomdl_json, gismo, irit]
+    return [vpjson, geomdl_json, gismo, irit, nurbs_text]
+
+
+def _surface_formats():
+    from . import geomdl_json, gismo, irit, nurbs_text
+
+    return [nurbs_text, geomdl_json, gismo, irit]
 
 
 def format_names():
@@ -230,6 +257,26 @@ def load_model(path, patch=0):
     return load_model_with_meta(path, patch)[0]
 
 
+def load_surface_with_meta(path, patch=0):
+    """One surface patch of a surface file (.nurbs text, G+Smo TensorBSpline2/TensorNurbs2, IRIT SURFACE, geomdl
+    surface JSON) -> (Surface, {'format', 'patches', 'units', 'path'})."""
+    path, head = _check_file(path)
+    fmt = detect_format(path, head)
+    if not hasattr(fmt, "read_surfaces"):
+        names = ", ".join(f.NAME for f in _surface_formats())
+        raise ModelError(f"{path}: a {fmt.NAME} file holds volumes, not surfaces (expected a surface file: {names})")
+    surfs, meta = fmt.read_surfaces(path)
+    meta = dict(meta)
+    meta.setdefault("units", None)
+    meta.update(format=fmt.NAME, patches=len(surfs), path=path)
+    return _pick(path, surfs, patch), meta
+
+
+def load_surface(path, patch=0):
+    """Read one surface of a surface file -> Surface."""
+    return load_surface_with_meta(path, patch)[0]
+
+
 def save_model(vol, path, units="mm"):
     """Write vol as volpuzzle JSON (deterministic bytes, full float precision)."""
     from .vpjson import dumps
@@ -252,4 +299,4 @@ def save_model(vol, path, units="mm"):
     return path
 
 
-__all__ = ["load_model", "load_model_with_meta", "read_patches", "save_model", "detect_format", "format_names"]
+__all__ = ["load_model", "load_model_with_meta", "read_patches", "load_surface", "load_surface_with_meta", "save_model", "detect_format", "format_names"]

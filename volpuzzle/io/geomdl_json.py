@@ -4,12 +4,13 @@
  "control_points": {"points": [[x, y, z], ...], "weights": [...]}, "rational": bool, "dimension": 3}]}}
 
 Points are Cartesian (geomdl exports `ctrlpts`, not the weighted `ctrlptsw`), ordered v fastest, then u, then w:
-flat index = j + n_v * (i + n_u * k).
+flat index = j + n_v * (i + n_u * k). A `"type": "surface"` file (u, v only; flat index j + n_v * i) is read by
+read_surfaces, for `model.shell`.
 """
 
 import numpy as np
 
-from . import fail, make_volume
+from . import fail, make_surface, make_volume
 from .vpjson import load_json
 
 NAME = "geomdl-json"
@@ -29,15 +30,17 @@ def _int(path, label, key, d):
     return v
 
 
-def _patch(path, d, label):
+def _patch(path, d, label, axes="uvw"):
     if not isinstance(d, dict):
         raise fail(path, label, "expected an object")
     dim = d.get("dimension", 3)
+    shape = "volume" if len(axes) == 3 else "surface"
     if dim != 3:
-        kind = "a scalar (1-D) trivariate" if dim == 1 else f"{dim}-D control points"
-        raise fail(path, f"{label}.dimension", f"{kind} is not a volume in space; expected dimension 3, got {dim!r}")
+        kind = (f"a scalar (1-D) {('bivariate', 'trivariate')[len(axes) - 2]}" if dim == 1
+                else f"{dim}-D control points")
+        raise fail(path, f"{label}.dimension", f"{kind} is not a {shape} in space; expected dimension 3, got {dim!r}")
     degrees, knots, sizes = [], [], []
-    for ax in "uvw":
+    for ax in axes:
         degrees.append(_int(path, label, f"degree_{ax}", d))
         kv = d.get(f"knotvector_{ax}")
         if not isinstance(kv, list):
@@ -50,17 +53,19 @@ def _patch(path, d, label):
     cp = d.get("control_points")
     if not isinstance(cp, dict) or "points" not in cp:
         raise fail(path, f"{label}.control_points", "expected an object with \"points\" (and optional \"weights\")")
-    n_u, n_v, n_w = sizes
     try:
         pts = np.array(cp["points"], dtype=float)
     except (TypeError, ValueError):
         raise fail(path, f"{label}.control_points.points", "expected a list of [x, y, z] numbers") from None
-    count = n_u * n_v * n_w
+    count = int(np.prod(sizes))
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] != count:
         raise fail(path, f"{label}.control_points.points",
-                   f"expected size_u x size_v x size_w = {n_u} x {n_v} x {n_w} = {count} points of 3 coordinates, "
-                   f"got shape {pts.shape}")
-    pts = pts.reshape(n_w, n_u, n_v, 3).transpose(1, 2, 0, 3)
+                   f"expected {' x '.join('size_' + a for a in axes)} = {' x '.join(map(str, sizes))} = {count} "
+                   f"points of 3 coordinates, got shape {pts.shape}")
+    # v fastest, then u, then w: stored order (w, u, v)
+    stored = ((sizes[2],) if len(axes) == 3 else ()) + (sizes[0], sizes[1])
+    order = (1, 2, 0) if len(axes) == 3 else (0, 1)
+    pts = pts.reshape(stored + (3,)).transpose(order + (len(axes),))
     w = cp.get("weights")
     if w is not None:
         try:
@@ -69,18 +74,29 @@ def _patch(path, d, label):
             raise fail(path, f"{label}.control_points.weights", "expected a list of numbers") from None
         if w.shape != (count,):
             raise fail(path, f"{label}.control_points.weights", f"expected {count} numbers, got shape {w.shape}")
-        w = w.reshape(n_w, n_u, n_v).transpose(1, 2, 0)
-    return make_volume(path, degrees, knots, pts, w, label=label)
+        w = w.reshape(stored).transpose(order)
+    make = make_volume if len(axes) == 3 else make_surface
+    return make(path, degrees, knots, pts, w, label=label)
 
 
-def read(path):
+def _shapes(path, kind):
     d = load_json(path)
     shape = d.get("shape") if isinstance(d, dict) else None
     if not isinstance(shape, dict):
         raise fail(path, "shape", "expected a geomdl \"shape\" object")
-    if shape.get("type") != "volume":
-        raise fail(path, "shape.type", f"no volume in the file: expected \"volume\", got {shape.get('type')!r}")
+    if shape.get("type") != kind:
+        raise fail(path, "shape.type", f"no {kind} in the file: expected \"{kind}\", got {shape.get('type')!r}")
     data = shape.get("data")
     if not isinstance(data, list):
-        raise fail(path, "shape.data", "expected a list of volumes")
+        raise fail(path, "shape.data", f"expected a list of {kind}s")
+    return data
+
+
+def read(path):
+    data = _shapes(path, "volume")
     return [_patch(path, p, f"shape.data[{i}]") for i, p in enumerate(data)], {"units": None}
+
+
+def read_surfaces(path):
+    data = _shapes(path, "surface")
+    return [_patch(path, p, f"shape.data[{i}]", "uv") for i, p in enumerate(data)], {"units": None}

@@ -1,4 +1,5 @@
-"""G+Smo XML: <xml> root holding <Geometry> elements; TensorBSpline3 and TensorNurbs3 are read.
+"""G+Smo XML: <xml> root holding <Geometry> elements; TensorBSpline3 and TensorNurbs3 are read as volumes,
+TensorBSpline2 and TensorNurbs2 as surfaces (for `model.shell`).
 
 <Geometry type="TensorBSpline3" id="..">
   <Basis type="TensorBSplineBasis3"> three <Basis type="BSplineBasis" index="0|1|2"><KnotVector degree="p">..
@@ -22,11 +23,12 @@ import defusedxml
 import defusedxml.ElementTree as SafeET
 import numpy as np
 
-from . import fail, make_volume, parse_floats
+from . import fail, make_surface, make_volume, parse_floats
 
 NAME = "gismo-xml"
 EXTENSIONS = (".xml",)
 SUPPORTED = ("TensorBSpline3", "TensorNurbs3")
+SURFACES = ("TensorBSpline2", "TensorNurbs2")
 _B64 = {"b64float64": "<f8", "b64float32": "<f4", "b64int32": "<i4", "b64int64": "<i8",
         "b64uint32": "<u4", "b64uint64": "<u8"}
 _DECL = re.compile(rb"<\?xml[^>]*\?>")
@@ -76,15 +78,16 @@ def _numbers(path, field, el):
     return np.frombuffer(data, dtype=dt).astype(float)
 
 
-def _bspline_basis(path, basis, label):
-    """TensorBSplineBasis3 element -> (degrees, knots)."""
+def _bspline_basis(path, basis, label, dims=3):
+    """TensorBSplineBasis3 (or 2, dims) element -> (degrees, knots)."""
     kids = [b for b in basis.findall("Basis")]
-    if len(kids) != 3:
-        raise fail(path, f"{label}.Basis", f"expected three BSplineBasis children, got {len(kids)}")
+    if len(kids) != dims:
+        raise fail(path, f"{label}.Basis", f"expected {('two', 'three')[dims - 2]} BSplineBasis children, "
+                                           f"got {len(kids)}")
     try:
         keys = [int(b.get("index", a)) for a, b in enumerate(kids)]
     except ValueError:
-        raise fail(path, f"{label}.Basis", "index: expected 0, 1 or 2") from None
+        raise fail(path, f"{label}.Basis", f"index: expected {' or '.join(map(str, range(dims)))}") from None
     kids = [b for _, b in sorted(zip(keys, kids), key=lambda kb: kb[0])]
     degrees, knots = [], []
     for a, b in enumerate(kids):
@@ -103,35 +106,37 @@ def _bspline_basis(path, basis, label):
     return degrees, knots
 
 
-def _geometry(path, g, label):
+def _geometry(path, g, label, dims=3):
     gtype = g.get("type")
-    if gtype not in SUPPORTED:
-        raise fail(path, label, f"Geometry type {gtype!r} is not supported; supported: {', '.join(SUPPORTED)} "
-                                f"(trivariate tensor-product B-splines and NURBS)")
+    supported = SUPPORTED if dims == 3 else SURFACES
+    if gtype not in supported:
+        what = "trivariate" if dims == 3 else "bivariate"
+        raise fail(path, label, f"Geometry type {gtype!r} is not supported; supported: {', '.join(supported)} "
+                                f"({what} tensor-product B-splines and NURBS)")
     basis = g.find("Basis")
     if basis is None:
         raise fail(path, label, "missing <Basis>")
     weights = None
-    if gtype == "TensorNurbs3":
-        if basis.get("type") != "TensorNurbsBasis3":
-            raise fail(path, f"{label}.Basis", f"expected type TensorNurbsBasis3, got {basis.get('type')!r}")
+    if gtype == f"TensorNurbs{dims}":
+        if basis.get("type") != f"TensorNurbsBasis{dims}":
+            raise fail(path, f"{label}.Basis", f"expected type TensorNurbsBasis{dims}, got {basis.get('type')!r}")
         wel = basis.find("weights")
         if wel is None:
-            raise fail(path, f"{label}.Basis.weights", "missing: a TensorNurbsBasis3 needs <weights>")
+            raise fail(path, f"{label}.Basis.weights", f"missing: a TensorNurbsBasis{dims} needs <weights>")
         weights = _numbers(path, f"{label}.Basis.weights", wel)
         basis = basis.find("Basis")
         if basis is None:
-            raise fail(path, f"{label}.Basis", "missing the inner TensorBSplineBasis3")
-    if basis.get("type") != "TensorBSplineBasis3":
-        raise fail(path, f"{label}.Basis", f"expected type TensorBSplineBasis3, got {basis.get('type')!r}")
-    degrees, knots = _bspline_basis(path, basis, label)
+            raise fail(path, f"{label}.Basis", f"missing the inner TensorBSplineBasis{dims}")
+    if basis.get("type") != f"TensorBSplineBasis{dims}":
+        raise fail(path, f"{label}.Basis", f"expected type TensorBSplineBasis{dims}, got {basis.get('type')!r}")
+    degrees, knots = _bspline_basis(path, basis, label, dims)
     sizes = [len(k) - p - 1 for k, p in zip(knots, degrees)]
     for a, n in enumerate(sizes):
         if n < 1:
             raise fail(path, f"{label}.Basis[{a}].KnotVector",
                        f"{len(knots[a])} knots are too few for degree {degrees[a]} "
                        f"(need at least {2 * degrees[a] + 2})")
-    count = sizes[0] * sizes[1] * sizes[2]
+    count = int(np.prod(sizes))
     cel = g.find("coefs")
     if cel is None:
         raise fail(path, f"{label}.coefs", "missing <coefs>")
@@ -142,19 +147,23 @@ def _geometry(path, g, label):
     except ValueError:
         raise fail(path, f"{label}.coefs.geoDim", f"expected an integer, got {gd!r}") from None
     if geo_dim == 1:
-        raise fail(path, f"{label}.coefs.geoDim", "a scalar (geoDim 1) trivariate is a field, not a volume in "
+        what = ("trivariate", "volume") if dims == 3 else ("bivariate", "surface")
+        raise fail(path, f"{label}.coefs.geoDim", f"a scalar (geoDim 1) {what[0]} is a field, not a {what[1]} in "
                                                   "space; expected geoDim 3")
     if geo_dim != 3:
         raise fail(path, f"{label}.coefs.geoDim", f"expected 3 coordinates per coefficient, got {geo_dim}")
     if coefs.size != 3 * count:
-        raise fail(path, f"{label}.coefs", f"expected {sizes[0]} x {sizes[1]} x {sizes[2]} = {count} control points "
+        raise fail(path, f"{label}.coefs", f"expected {' x '.join(map(str, sizes))} = {count} control points "
                                            f"({3 * count} numbers) to fit the knot vectors, got {coefs.size} numbers")
-    pts = coefs.reshape(sizes[2], sizes[1], sizes[0], 3).transpose(2, 1, 0, 3)
+    # u fastest: reverse the axes of the flat array
+    order = tuple(range(dims))[::-1]
+    pts = coefs.reshape(tuple(sizes[::-1]) + (3,)).transpose(order + (dims,))
     if weights is not None:
         if weights.size != count:
             raise fail(path, f"{label}.Basis.weights", f"expected {count} weights, got {weights.size}")
-        weights = weights.reshape(sizes[2], sizes[1], sizes[0]).transpose(2, 1, 0)
-    return make_volume(path, degrees, knots, pts, weights, label=label)
+        weights = weights.reshape(tuple(sizes[::-1])).transpose(order)
+    make = make_volume if dims == 3 else make_surface
+    return make(path, degrees, knots, pts, weights, label=label)
 
 
 def _ordered(path, root, geoms):
@@ -210,3 +219,22 @@ def read(path):
         label = f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else "")
         vols.append(_geometry(path, g, label))
     return vols, {"units": None}
+
+
+def read_surfaces(path):
+    """Every TensorBSpline2 / TensorNurbs2 geometry in the file, in patch order -> (list[Surface], meta)."""
+    root = _parse(path)
+    if root.tag != "xml":
+        raise fail(path, "", f"expected a G+Smo file with an <xml> root element, got <{root.tag}>")
+    geoms = list(root.iter("Geometry"))
+    surf_geoms = [g for g in _ordered(path, root, geoms) if (g.get("type") or "").endswith("2")]
+    if not surf_geoms:
+        found = sorted({g.get("type") or "?" for g in geoms})
+        have = f" (found: {', '.join(found)})" if found else ""
+        raise fail(path, "Geometry", f"no surface in the file{have}; expected a Geometry of type "
+                                     f"{' or '.join(SURFACES)}")
+    out = []
+    for i, g in enumerate(surf_geoms):
+        gid = g.get("id")
+        out.append(_geometry(path, g, f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else ""), dims=2))
+    return out, {"units": None}

@@ -1,5 +1,6 @@
 """IRIT text data (.itd): trivariates `[TRIVAR BSPLINE lu lv lw ou ov ow PT [KV ..] [KV ..] [KV ..] [pt] ...]` and
-`[TRIVAR BEZIER lu lv lw PT [pt] ...]`; every other object in the file is skipped.
+`[TRIVAR BEZIER lu lv lw PT [pt] ...]`; every other object in the file is skipped. Surfaces (`[SURFACE BSPLINE lu lv
+ou ov PT [KV ..] [KV ..] [pt] ...]`, `[SURFACE BEZIER lu lv PT ...]`) are read the same way by read_surfaces.
 
 IRIT gives orders (degree + 1). PT is E3 (points [x y z]) or P3 (rational: [w  w*x  w*y  w*z], weight first and
 premultiplied). Points run u fastest: flat index = i + lu * (j + lv * k).
@@ -10,11 +11,12 @@ clamped one by knot insertion at the domain ends: the same volume, exactly, on t
 knots is read as an already unrolled floating vector.)
 """
 
+import math
 import re
 
 import numpy as np
 
-from . import fail, make_volume
+from . import fail, make_surface, make_volume
 
 NAME = "irit-itd"
 EXTENSIONS = (".itd", ".dat")
@@ -60,18 +62,18 @@ def _tree(path, text):
     return stack[0]
 
 
-def _walk(node, name=None):
-    """Yield (trivar node, object name) for every TRIVAR list anywhere in the tree."""
+def _walk(node, name=None, kind="TRIVAR"):
+    """Yield (node, object name) for every `kind` (TRIVAR or SURFACE) list anywhere in the tree."""
     items = node[1:] if node and isinstance(node[0], int) else node
     head = items[0].upper() if items and isinstance(items[0], str) else None
-    if head == "TRIVAR":
+    if head == kind:
         yield node, name
         return
     if head == "OBJECT" and len(items) > 1 and isinstance(items[1], str):
         name = items[1]
     for x in items:
         if isinstance(x, list):
-            yield from _walk(x, name)
+            yield from _walk(x, name, kind)
 
 
 def _ints(path, field, tokens):
@@ -88,34 +90,40 @@ def _floats(path, field, tokens):
         raise fail(path, field, f"expected numbers, got {' '.join(map(str, tokens))!r}") from None
 
 
-def _trivar(path, node, label):
+_KINDS = {3: ("TRIVAR", "lu lv lw", "ou ov ow", "three", "trivariate", "volume"),
+          2: ("SURFACE", "lu lv", "ou ov", "two", "bivariate", "surface")}
+
+
+def _trivar(path, node, label, dims=3):
+    """A TRIVAR (dims 3) or SURFACE (dims 2) node -> (Volume or Surface, periodic flag per axis)."""
+    head, ls, os_, count_word, what, shape_word = _KINDS[dims]
     line, items = node[0], node[1:]
     label = f"{label} (line {line})"
     if len(items) < 2 or not isinstance(items[1], str):
-        raise fail(path, label, "expected TRIVAR BSPLINE or TRIVAR BEZIER")
+        raise fail(path, label, f"expected {head} BSPLINE or {head} BEZIER")
     kind = items[1].upper()
     scalars = [x for x in items[2:] if isinstance(x, str)]
     lists = [x for x in items[2:] if isinstance(x, list)]
     if kind == "BSPLINE":
-        if len(scalars) != 7:
-            raise fail(path, label, "expected 'TRIVAR BSPLINE lu lv lw ou ov ow PT' (three lengths, three orders, "
-                                    f"a point type), got {' '.join(scalars)!r}")
-        lengths = _ints(path, f"{label}: lengths", scalars[:3])
-        orders = _ints(path, f"{label}: orders", scalars[3:6])
+        if len(scalars) != 2 * dims + 1:
+            raise fail(path, label, f"expected '{head} BSPLINE {ls} {os_} PT' ({count_word} lengths, {count_word} "
+                                    f"orders, a point type), got {' '.join(scalars)!r}")
+        lengths = _ints(path, f"{label}: lengths", scalars[:dims])
+        orders = _ints(path, f"{label}: orders", scalars[dims:2 * dims])
     elif kind == "BEZIER":
-        if len(scalars) != 4:
-            raise fail(path, label, f"expected 'TRIVAR BEZIER lu lv lw PT', got {' '.join(scalars)!r}")
-        lengths = _ints(path, f"{label}: lengths", scalars[:3])
+        if len(scalars) != dims + 1:
+            raise fail(path, label, f"expected '{head} BEZIER {ls} PT', got {' '.join(scalars)!r}")
+        lengths = _ints(path, f"{label}: lengths", scalars[:dims])
         orders = list(lengths)
     else:
-        raise fail(path, label, f"TRIVAR {items[1]} is not supported; expected BSPLINE or BEZIER")
+        raise fail(path, label, f"{head} {items[1]} is not supported; expected BSPLINE or BEZIER")
     pt = _PT.match(scalars[-1])
     if not pt:
         raise fail(path, f"{label}: point type", f"expected E3 or P3, got {scalars[-1]!r}")
     rational, dim = pt.group(1).upper() == "P", int(pt.group(2))
     if dim == 1:
-        raise fail(path, f"{label}: point type", f"{scalars[-1]} is a scalar trivariate (a field, not a volume in "
-                                                 f"space); expected E3 or P3")
+        raise fail(path, f"{label}: point type", f"{scalars[-1]} is a scalar {what} (a field, not a {shape_word} "
+                                                 f"in space); expected E3 or P3")
     if dim != 3:
         raise fail(path, f"{label}: point type", f"expected E3 or P3 (points in space), got {scalars[-1]}")
     for a, (n, k) in enumerate(zip(lengths, orders)):
@@ -127,10 +135,10 @@ def _trivar(path, node, label):
                                                     f"(expected order 2 to {_MAX_DEGREE + 1})")
 
     kvs, pts = [], []
-    count = lengths[0] * lengths[1] * lengths[2]  # Python integers: no overflow, and nothing allocated by it
+    count = math.prod(lengths)  # Python integers: no overflow, and nothing allocated by it
     points = sum(1 for x in lists if len(x) > 1 and isinstance(x[1], str) and re.match(r"^[-+.\d]", x[1]))
     if points != count:
-        raise fail(path, f"{label}: control points", f"expected {lengths[0]} x {lengths[1]} x {lengths[2]} = "
+        raise fail(path, f"{label}: control points", f"expected {' x '.join(map(str, lengths))} = "
                                                      f"{count} points, got {points}")
     for x in lists:
         body = x[1:]
@@ -139,10 +147,11 @@ def _trivar(path, node, label):
         elif body and isinstance(body[0], str) and re.match(r"^[-+.\d]", body[0]):
             pts.append((x[0], body))
         # anything else is an attribute such as [color 4]: skipped
-    periodic = [False] * 3
+    periodic = [False] * dims
     if kind == "BSPLINE":
-        if len(kvs) != 3:
-            raise fail(path, f"{label}: knot vectors", f"expected three [KV ...] lists (u, v, w), got {len(kvs)}")
+        if len(kvs) != dims:
+            raise fail(path, f"{label}: knot vectors", f"expected {count_word} [KV ...] lists ({', '.join('uvw'[:dims])}), "
+                                                       f"got {len(kvs)}")
         knots = []
         for a, ((tag, kv), n, k) in enumerate(zip(kvs, lengths, orders)):
             field = f"{label}: {tag} {'uvw'[a]}"
@@ -160,7 +169,7 @@ def _trivar(path, node, label):
 
     width = 4 if rational else 3
     if len(pts) != count:
-        raise fail(path, f"{label}: control points", f"expected {lengths[0]} x {lengths[1]} x {lengths[2]} = {count} "
+        raise fail(path, f"{label}: control points", f"expected {' x '.join(map(str, lengths))} = {count} "
                                                      f"points, got {len(pts)}")
     flat = np.empty((count, width))
     for i, (ln, body) in enumerate(pts):
@@ -169,7 +178,8 @@ def _trivar(path, node, label):
                                                             f"{' ([w w*x w*y w*z])' if rational else ''}, "
                                                             f"got {len(body)}")
         flat[i] = _floats(path, f"{label}: point at line {ln}", body)
-    net = flat.reshape(lengths[2], lengths[1], lengths[0], width).transpose(2, 1, 0, 3)
+    order = tuple(range(dims))[::-1]  # u fastest
+    net = flat.reshape(tuple(lengths[::-1]) + (width,)).transpose(order + (dims,))
     if rational:
         w = net[..., 0]
         bad = np.argwhere(~(np.isfinite(w) & (w > 0)))
@@ -179,22 +189,27 @@ def _trivar(path, node, label):
         cps, weights = net[..., 1:] / w[..., None], w
     else:
         cps, weights = net, None
-    for a in range(3):
+    for a in range(dims):
         if periodic[a]:
             k = orders[a]
             idx = np.r_[np.arange(lengths[a]), np.arange(k - 1)]
             cps = np.take(cps, idx, axis=a)
             weights = None if weights is None else np.take(weights, idx, axis=a)
-    return make_volume(path, [k - 1 for k in orders], knots, cps, weights, label=label), periodic
+    make = make_volume if dims == 3 else make_surface
+    return make(path, [k - 1 for k in orders], knots, cps, weights, label=label), periodic
 
 
-def read(path):
+def _read_tree(path):
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             text = f.read()
     except OSError as e:
         raise fail(path, "", f"cannot be read ({e.strerror})") from None
-    tree = _tree(path, text)
+    return _tree(path, text)
+
+
+def read(path):
+    tree = _read_tree(path)
     vols, periodic = [], []
     for i, (node, name) in enumerate(_walk(tree)):
         label = f"TRIVAR[{i}]" + (f" (object {name})" if name else "")
@@ -205,3 +220,17 @@ def read(path):
         raise fail(path, "TRIVAR", "no volume in the file: expected a [TRIVAR BSPLINE ...] or "
                                    "[TRIVAR BEZIER ...] object")
     return vols, {"units": None, "periodic_knots": periodic}
+
+
+def read_surfaces(path):
+    """Every SURFACE BSPLINE / BEZIER object in the file -> (list[Surface], meta)."""
+    tree = _read_tree(path)
+    surfs, periodic = [], []
+    for i, (node, name) in enumerate(_walk(tree, kind="SURFACE")):
+        surf, per = _trivar(path, node, f"SURFACE[{i}]" + (f" (object {name})" if name else ""), dims=2)
+        surfs.append(surf)
+        periodic.append([ax for ax, p in zip("uv", per) if p])
+    if not surfs:
+        raise fail(path, "SURFACE", "no surface in the file: expected a [SURFACE BSPLINE ...] or "
+                                    "[SURFACE BEZIER ...] object")
+    return surfs, {"units": None, "periodic_knots": periodic}

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ExportError, ModelError
 
-__all__ = ["write_3mf", "read_3mf", "UNITS", "DEFAULT_ACCENT"]
+__all__ = ["write_3mf", "read_3mf", "read_triangle_colors", "UNITS", "DEFAULT_ACCENT"]
 
 UNITS = ("micron", "millimeter", "centimeter", "inch", "foot", "meter")
 # A neutral dark grey for triangles marked as the second material (e.g. pins), when no colour is given.
@@ -104,10 +104,11 @@ def _set_geometry(L, w, mesh_obj, vertices: np.ndarray, faces: np.ndarray) -> No
 _TRI_PROPS = np.dtype([("rid", "<u4"), ("pids", "<u4", (3,))])
 
 
-def _set_triangle_materials(L, w, mesh_obj, resource_id: int, pids: np.ndarray) -> None:
+def _set_triangle_materials(L, w, mesh_obj, resource_id, pids: np.ndarray) -> None:
+    """resource_id: one resource for all triangles, or (m,) one per triangle."""
     props = np.zeros(len(pids), dtype=_TRI_PROPS)
     props["rid"] = resource_id
-    props["pids"] = pids[:, None]
+    props["pids"] = pids if pids.ndim == 2 else pids[:, None]
     buf = (L.TriangleProperties * len(props)).from_buffer(props)
     w.checkError(mesh_obj, w.lib.lib3mf_meshobject_setalltriangleproperties(
         mesh_obj._handle, ctypes.c_uint64(len(props)), buf))
@@ -134,12 +135,15 @@ def _check_object(path, k, obj):
 
 
 def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Optional[Sequence] = None,
-              accent_rgb=DEFAULT_ACCENT) -> Path:
+              accent_rgb=DEFAULT_ACCENT, colors: Optional[Sequence] = None) -> Path:
     """Write one mesh object per entry, each placed by its own build item, each with one colour.
 
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,
     transform (3, 4) [R | t] | None). materials: None, or per object None | (m,) int array marking each
     triangle 0 = the object's colour, 1 = the second material (accent_rgb, e.g. pins).
+    colors: None, or per object None | (m, 3) int array of per-triangle colours or (m, 3 corners, 3) colours at the
+    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
+    triangles reference; the object keeps its base material for slicers that only read that.
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
     path = Path(path)
@@ -148,12 +152,27 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
         raise ExportError(f"{path}: nothing to write (got 0 objects, expected at least 1)")
     if materials is not None and len(materials) != len(objects):
         raise ExportError(f"{path}: materials: got {len(materials)} entries, expected one per object ({len(objects)})")
+    if colors is not None and len(colors) != len(objects):
+        raise ExportError(f"{path}: colors: got {len(colors)} entries, expected one per object ({len(objects)})")
     with _LOCK:
-        _write_model(path, objects, unit, materials, accent_rgb)
+        _write_model(path, objects, unit, materials, accent_rgb, colors)
     return path
 
 
-def _write_model(path, objects, unit, materials, accent_rgb) -> None:
+def _color_ids(L, w, cache, rgb):
+    """Colour-group property ids for (k, 3) colours, adding each distinct colour once to the file's group."""
+    group, ids = cache["group"], cache["ids"]
+    keys = (rgb[:, 0].astype(np.int64) << 16) | (rgb[:, 1].astype(np.int64) << 8) | rgb[:, 2].astype(np.int64)
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    pid = np.empty(len(uniq), dtype=np.uint32)
+    for i, key in enumerate(uniq.tolist()):
+        if key not in ids:
+            ids[key] = group.AddColor(w.RGBAToColor((key >> 16) & 255, (key >> 8) & 255, key & 255, 255))
+        pid[i] = ids[key]
+    return group.GetResourceID(), pid[inverse.reshape(-1)]
+
+
+def _write_model(path, objects, unit, materials, accent_rgb, colors=None) -> None:
     _, L, w = _lib()
     try:
         model = w.CreateModel()
@@ -161,8 +180,12 @@ def _write_model(path, objects, unit, materials, accent_rgb) -> None:
         model.SetBuildUUID(str(uuid.uuid5(_NAMESPACE, f"build/{len(objects)}")))
         group = None
         accent_pid = None
+        color_cache = {}
         if any(o[3] is not None for o in objects) or materials is not None:
             group = model.AddBaseMaterialGroup()
+        if colors is not None and any(c is not None for c in colors):
+            # before the objects: a resource must come before the objects that reference it
+            color_cache.update(group=model.AddColorGroup(), ids={})
         for k, (name, v, f, rgb, transform) in enumerate(objects):
             mesh_obj = model.AddMeshObject()
             mesh_obj.SetName(name)
@@ -184,8 +207,26 @@ def _write_model(path, objects, unit, materials, accent_rgb) -> None:
                 if accent_pid is None:
                     r, g, b = (int(x) for x in accent_rgb)
                     accent_pid = group.AddMaterial("second-material", w.RGBAToColor(r, g, b, 255))
-                pids = np.where(mat == 1, accent_pid, own_pid).astype(np.uint32)
-                _set_triangle_materials(L, w, mesh_obj, group.GetResourceID(), pids)
+            tex = None if colors is None else colors[k]
+            if mat is not None or tex is not None:
+                if own_pid is None:
+                    raise ExportError(f"{path}: object {name!r}: per-triangle colours need the object's own colour too")
+                pids = np.full((len(f), 3), own_pid, dtype=np.uint32)
+                if mat is not None:
+                    pids[:] = np.where(mat == 1, accent_pid, own_pid).astype(np.uint32)[:, None]
+                rids = np.full(len(f), group.GetResourceID(), dtype=np.uint32)
+                if tex is not None:
+                    tex = np.asarray(tex)
+                    if tex.shape == (len(f), 3):
+                        tex = np.repeat(tex[:, None, :], 3, axis=1)
+                    if tex.shape != (len(f), 3, 3) or tex.max(initial=0) > 255:
+                        raise ExportError(f"{path}: object {name!r}: colors must be ({len(f)}, 3) or ({len(f)}, 3, 3) "
+                                          f"values in 0..255 or -1, got shape {tex.shape}")
+                    on = tex[:, 0, 0] >= 0
+                    if np.any(on):
+                        rid, cpid = _color_ids(L, w, color_cache, tex[on].reshape(-1, 3))
+                        rids[on], pids[on] = rid, cpid.reshape(-1, 3)
+                _set_triangle_materials(L, w, mesh_obj, rids, pids)
             item = model.AddBuildItem(mesh_obj, _transform(L, transform))
             item.SetUUID(str(uuid.uuid5(_NAMESPACE, f"item/{k}/{name}")))
         writer = model.QueryWriter("3mf")
@@ -308,3 +349,49 @@ def _read_model(path, strict, with_units):
     if with_units:
         return out, _unit_name(L, model.GetUnit())
     return out
+
+
+def read_triangle_colors(path, strict: bool = True):
+    """The display colour at the corners of every triangle of every build item -> {object name: (m, 3, 3) uint8}: from
+    its colour-group or base-material property, else the object's own colour (grey when it has none)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such 3MF file")
+    with _LOCK:
+        _, L, w = _lib()
+        try:
+            model = w.CreateModel()
+            reader = model.QueryReader("3mf")
+            reader.SetStrictModeActive(bool(strict))
+            reader.ReadFromFile(str(path))
+        except Exception as e:
+            raise ModelError(f"{path}: not a readable 3MF file: {e}") from e
+        out = {}
+        items = model.GetBuildItems()
+        while items.MoveNext():
+            res = items.GetCurrent().GetObjectResource()
+            mesh_obj = model.GetMeshObjectByID(res.GetResourceID())
+            n = mesh_obj.GetTriangleCount()
+            props = np.zeros(n, dtype=_TRI_PROPS)
+            needed = ctypes.c_uint64(0)
+            w.checkError(mesh_obj, w.lib.lib3mf_meshobject_getalltriangleproperties(
+                mesh_obj._handle, ctypes.c_uint64(n), needed, (L.TriangleProperties * n).from_buffer(props)))
+            own = _object_rgb(model, mesh_obj)
+            rgb = np.tile(np.array((128, 128, 128) if own is None else own, np.uint8), (n, 3, 1))
+            rid_corner = np.repeat(props["rid"][:, None], 3, axis=1)
+            lookup = {}
+            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist())):
+                if rid == 0:
+                    continue
+                try:
+                    c = model.GetColorGroupByID(rid).GetColor(pid)
+                except Exception:
+                    try:
+                        c = model.GetBaseMaterialGroupByID(rid).GetDisplayColor(pid)
+                    except Exception:
+                        continue
+                lookup[(rid, pid)] = (c.Red, c.Green, c.Blue)
+            for key, c in lookup.items():
+                rgb[(rid_corner == key[0]) & (props["pids"] == key[1])] = c
+            out[mesh_obj.GetName()] = rgb
+        return out
