@@ -270,18 +270,23 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
         return pieces, labels, engraved, checks
 
+    clearance = spec.output.face_clearance
     if stages["model"].mesh is not None:
-        pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress)
+        pieces, joints, mesh_report = _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress, clearance)
         gaps = sum(joint_gap_volume(j) for j in joints)
-        expected = stages["model_report"]["volume_mm3"] - gaps
+        face_gaps = mesh_report.pop("face_clearance_mm3", 0.0)
+        expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
     else:
+        from .compose import face_clearance_volume
+
         gaps = sum(joint_gap_volume(j) for j in joints)
-        expected = stages["model_report"]["volume_mm3"] - gaps
         for attempt in range(3):
             with timer("compose", progress):
                 pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs,
-                                 progress=progress.piece)
+                                 progress=progress.piece, face_clearance=clearance)
+            face_gaps = face_clearance_volume(pieces.sampling, clearance)
+            expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
             pieces, labels, engraved, checks = finish(pieces, joints, expected)
             deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                             and checks["volume_error"] < -0.005)
@@ -291,6 +296,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             # an upper bound, so tessellating finer still honours it while making the volumes add up.
             tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
     checks["joint_gaps_mm3"] = round(gaps, 3)
+    checks["face_clearance_mm"] = clearance
+    checks["face_clearance_mm3"] = round(face_gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
     sampling = getattr(pieces, "sampling", None)
@@ -340,9 +347,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     return report
 
 
-def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
-    """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints kept inside
-    the mesh, then pins and holes. -> (pieces, kept joints, report dict)"""
+def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress, face_clearance=0.0):
+    """Mesh mode: cage pieces without joints (cut faces set back by face_clearance / 2), each intersected with the
+    mesh, fragments merged, joints kept inside the mesh, then pins and holes. -> (pieces, kept joints, report dict;
+    its face_clearance_mm3 is the volume the clearance takes out of the mesh)"""
     from .compose import Piece, compose
     from .geometry import boolean, from_trimesh, to_trimesh
     from .joint import hole_solid, piece_id, pieces_joints, pin_solid
@@ -350,7 +358,8 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
 
     tiling = stages["tiling"]
     with timer("compose", progress):
-        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
+        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece,
+                         face_clearance=face_clearance)
         solid = from_trimesh(stages["model"].mesh, "mesh model")
         cage_pieces = {p.id: from_trimesh(p.mesh, p.id) for p in bodies}
         cut = intersect_pieces(cage_pieces, solid)
@@ -386,6 +395,12 @@ def _compose_in_mesh(stages, joints, tolerance, jobs, timer, progress):
     report = {"cells_without_piece": dropped, "merged": merges, "joints_moved_or_dropped": moved,
               "joints_moved": sum(1 for r in moved if r.get("action") == "moved"),
               "joints_dropped": sum(1 for r in moved if r.get("action") == "dropped")}
+    if face_clearance > 0:
+        from .compose import face_clearance_volume
+        from .geometry import inside_mesh
+
+        report["face_clearance_mm3"] = face_clearance_volume(
+            bodies.sampling, face_clearance, inside=lambda p: inside_mesh(stages["model"].mesh, p))
     return pieces, joints, report
 
 
