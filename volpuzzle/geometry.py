@@ -157,3 +157,10 @@ def inside_mesh(mesh, points, max_faces=2000):
                + np.einsum("pti,pti->pt", c, a) * lb)
         total[i0:i0 + step] = np.arctan2(det, den).sum(axis=1) / (2 * np.pi)
     return total > 0.5
+
+
+def trim(m, normal, offset, what):
+    """The part of Manifold m on the side `normal` points to of the plane normal . x = offset, status checked."""
+    return _check(_check(m, what, "trimming by a plane (operand)").trim_by_plane(tuple(float(x) for x in normal),
+                                                                               float(offset)),
+                  what, "trimming by a plane")

@@ -232,14 +232,14 @@ def _check_plate(spec, tiling, fmap):
         else:
             q = p - p.mean(axis=0)
             ext = np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2].T, axis=0)
-        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing
+        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing + 2 * spec.output.margin
 
     if all(np.all(footprint(p, False) <= plate + 1e-9) for p in pts):
         return
     need = np.max([footprint(p, True) for p in pts], axis=0)
     if np.any(need > plate + 1e-9):
-        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with spacing "
-                        f"(got {list(spec.output.plate)}, expected at least [{np.ceil(need[0]):.0f}, "
+        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with "
+                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least [{np.ceil(need[0]):.0f}, "
                         f"{np.ceil(need[1]):.0f}])", source=spec.source)
 
 
@@ -262,12 +262,21 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     tolerance = spec.output.tolerance
     mesh_report = None
 
+    state = {}
+
     def finish(pieces, joints, expected):
-        """Labels, the float32 form the files store, and the build's own checks on exactly that."""
-        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
+        """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the
+        build's own checks on exactly that."""
+        with timer("layout", progress):
+            poses = _poses(pieces, joints)
+        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress, poses)
+        with timer("layout", progress):
+            pieces, cut = _base_cuts(pieces, poses)
         with timer("check", progress):
             pieces = _printable(pieces)
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut)
+        checks["base_cuts_mm3"] = round(cut, 3)
+        state["poses"] = poses
         return pieces, labels, engraved, checks
 
     clearance = spec.output.face_clearance
@@ -314,14 +323,15 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins)
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, state["poses"])
     ext = spec.output.format
-    plate_of = {pl.name: pl.plate for pl in placements}
+    place_of = {pl.name: pl for pl in placements}
     entries = []
     for p in pieces:
         entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
-        entry["plate"] = plate_of.get(p.id)
+        entry["plate"] = place_of[p.id].plate if p.id in place_of else None
         entry["label"] = labels.get(p.id)
+        entry["print"] = _print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
         entries.append(entry)
     report = {
         "volpuzzle_version": __version__,
@@ -419,6 +429,44 @@ def _assembly(plan, pieces, joints, timer, progress):
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
+def _poses(pieces, joints):
+    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts."""
+    from .layout import joint_directions, plan_pose
+
+    pins, openings = joint_directions(joints)
+    return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
+
+
+def _base_cuts(pieces, poses):
+    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all)."""
+    import dataclasses
+
+    from .layout import base_cut
+
+    out, removed = [], 0.0
+    for p in pieces:
+        pose = poses.get(p.id)
+        if pose is None or pose.base_cut_mm <= 0:
+            out.append(p)
+            continue
+        mesh, v = base_cut(p.mesh, pose, p.id)
+        removed += v
+        out.append(dataclasses.replace(p, mesh=mesh, volume=p.volume - v, triangles=int(len(mesh.faces))))
+    return _like(pieces, out), removed
+
+
+def _print_entry(piece, pose, placement):
+    """report.json "print" of a piece: its pose, the (4, 4) transform to its plate, its bed contact there."""
+    from .layout import bed_contact
+
+    if pose is None or placement is None:
+        return None
+    entry = pose.to_report()
+    entry["plate_transform"] = np.round(placement.transform, 6).tolist()
+    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
+    return entry
+
+
 def _like(pieces, out):
     """`out` as the same kind of list as `pieces` (compose's Pieces carries .sampling and .seconds)."""
     if not hasattr(pieces, "sampling"):
@@ -457,32 +505,41 @@ def _printable(pieces):
     return out
 
 
-def _label(spec, stages, pieces, joints, timer, progress):
-    """Engrave each piece's id on an inner face no joint uses. -> (pieces, {id: label report or None}, mm^3 removed)"""
+def _label(spec, stages, pieces, joints, timer, progress, poses=None):
+    """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
+    None}, mm^3 removed)"""
     import dataclasses
 
     from .geometry import from_trimesh, to_trimesh
-    from .label import label_piece
+    from .label import label_piece, site_on_joint_face
 
     if not spec.output.labels:
         return pieces, {}, 0.0
     tiling, fmap = stages["tiling"], stages["fmap"]
 
-    def one(p):
+    poses = poses or {}
+
+    def one(k, p):
+        pose = poses.get(p.id)
+        # the piece id, else its number in the piece list (report.md gives the key)
+        texts = (p.id, str(k + 1))
         try:
-            body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints, what=p.id)
+            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+                                           what=p.id, texts=texts, avoid=None if pose is None else pose.down)
         except GeometryError as e:
             # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
             return p, {"skipped": str(e)}, 0.0
         if site is None:
-            return p, None, 0.0
+            return p, {"skipped": note}, 0.0
         mesh = to_trimesh(body)
         volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
+        entry = site.to_report()
+        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, joints, p.cell))
         return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
-                site.to_report(), p.volume - volume)
+                entry, p.volume - volume)
 
     with timer("label", progress):
-        results = [one(p) for p in pieces]
+        results = [one(k, p) for k, p in enumerate(pieces)]
     out = [r[0] for r in results]
     sites = {p.id: r[1] for p, r in zip(pieces, results)}
     removed = sum(r[2] for r in results)
@@ -511,21 +568,17 @@ def pin_triangles(pieces, joints):
     return out
 
 
-def _layout(spec, pieces, dowels, joints, colors, pins=None):
+def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
-    from .joint import piece_id
-    from .layout import layout
+    from .layout import joint_directions, layout
     from .preview import render_preview
 
-    pin_dirs = {}
-    for j in joints:
-        if j.style == "pin":
-            pid = piece_id(j.pin_cell)
-            pin_dirs.setdefault(pid, []).append(np.asarray(j.direction))
+    pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
     rgb = {p.id: c for p, c in zip(pieces, colors)}
-    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs)
+    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
+                                poses=poses, hole_openings=openings)
     meshes = dict(parts)
     extras = {}
     for pl in plates:
