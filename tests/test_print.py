@@ -57,3 +57,44 @@ def test_no_clearance_on_a_single_cell():
     gapped = C.compose(t, fmap, [], tol, sampling=sampling, face_clearance=0.3)
     assert gapped[0].volume == pytest.approx(plain[0].volume, rel=1e-12)
     assert C.face_clearance_volume(sampling, 0.3) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# preview
+
+
+def test_preview_hides_a_box_inside_another(tmp_path):
+    from PIL import Image
+
+    from volpuzzle.preview import render_preview
+
+    outer = trimesh.creation.box([20, 20, 20])
+    inner = trimesh.creation.box([8, 8, 8])
+    red, blue = np.array([230, 30, 30], np.uint8), np.array([30, 30, 230], np.uint8)
+    for meshes, colors in (([outer, inner], [red, blue]), ([inner, outer], [blue, red])):
+        render_preview(tmp_path / "p.png", meshes, colors, offsets=np.zeros((2, 3)))
+        px = np.asarray(Image.open(tmp_path / "p.png").convert("RGB")).astype(int)
+        blueish = (px[:, :, 2] > px[:, :, 0] + 60)
+        assert not blueish.any()  # whatever the order, no pixel of the hidden box shows
+        assert (px[:, :, 0] > px[:, :, 2] + 60).sum() > 1000  # the outer box is there
+
+
+def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
+    from PIL import Image
+
+    from volpuzzle.preview import render_preview
+
+    box = trimesh.creation.box([20, 20, 20])
+    per_tri = np.tile(np.array([[30, 200, 30]], np.uint8), (len(box.faces), 1))
+    per_tri[box.face_normals[:, 2] > 0.5] = (200, 30, 200)  # the top painted another colour
+    render_preview(tmp_path / "p.png", [box], [per_tri], plate=([box], [per_tri], (60, 50)))
+    img = Image.open(tmp_path / "p.png")
+    assert img.size == (2400, 800)
+    px = np.asarray(img.convert("RGB")).astype(int)
+    magenta = (px[:, :, 0] > 120) & (px[:, :, 2] > 120) & (px[:, :, 1] < 80)
+    green = (px[:, :, 1] > px[:, :, 0] + 60) & (px[:, :, 1] > px[:, :, 2] + 60)
+    for panel in range(3):
+        cols = slice(panel * 800, (panel + 1) * 800)
+        assert magenta[:, cols].sum() > 200 and green[:, cols].sum() > 200
+    grey = ((np.ptp(px, axis=2) < 4) & (px[:, :, 0] > 100) & (px[:, :, 0] < 250))[:, 1600:]
+    assert grey.sum() > 1000  # the bed under the plate view

@@ -27,6 +27,7 @@ MIN_BED_MM2 = 10.0  # less than this on the bed and the first layer has nothing 
 BASE_TARGET = (25.0, 0.08)  # a base cut aims at max(mm^2, share of the footprint) of bed contact
 BASE_CUT_MM = (0.2, 0.3, 0.4, 0.5, 0.6)  # base cut depths tried, shallowest first (a few layers at most)
 FIRST_SLICE_MM = 0.1  # a slicer cuts its first 0.2 mm layer here: what it finds is the piece's contact with the bed
+TALL_RATIO = 4.0  # height over the side of the base (the square root of its area) a piece stands up to
 PIN_UP_DEG = 30.0  # a pin within this angle of vertical prints round and strong, with no support
 PIN_UP_WEIGHT = 0.15  # a pin up is worth this share of the piece's surface area in overhang
 
@@ -118,7 +119,8 @@ def _scores(mesh, downs, up_dirs, open_dirs=()):
     pins_down = (pin_dot > 0.5).sum(axis=1)
     pins_up = (pin_dot < -np.cos(np.radians(PIN_UP_DEG))).sum(axis=1)
     holes_down = (downs @ open_dirs.T > 0.5).sum(axis=1)
-    return contact, np.maximum(base, contact), overhang, pins_down, pins_up, holes_down, float(area.sum())
+    return (contact, np.maximum(base, contact), overhang, pins_down, pins_up, holes_down, float(area.sum()),
+            low - h.min(axis=0))
 
 
 def _choose(mesh, pin_directions=(), hole_openings=()):
@@ -132,10 +134,11 @@ def _choose(mesh, pin_directions=(), hole_openings=()):
         d = np.asarray(d, float)
         extra.append(-d[None] / max(np.linalg.norm(d), 1e-12))
     downs = np.concatenate([downs] + extra)
-    contact, base, overhang, pins_down, pins_up, holes_down, total = _scores(mesh, downs, pin_directions,
-                                                                             hole_openings)
+    contact, base, overhang, pins_down, pins_up, holes_down, total, height = _scores(mesh, downs, pin_directions,
+                                                                                     hole_openings)
     index = np.arange(len(downs))
-    unstable = base < 2 * MIN_BED_MM2
+    # a tall piece on a small base topples or wobbles: the base's side should be at least a quarter of the height
+    unstable = base < np.maximum(2 * MIN_BED_MM2, (height / TALL_RATIO) ** 2)
     cost = (overhang - base) / max(total, 1e-12) - PIN_UP_WEIGHT * pins_up
     # a flat face within a few per cent of the best is as good as it: ties go to the candidate listed first
     cost = np.round(cost / 0.02)

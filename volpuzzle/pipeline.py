@@ -323,7 +323,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, state["poses"])
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, state["poses"],
+                                             assembly.get("steps"))
     ext = spec.output.format
     place_of = {pl.name: pl for pl in placements}
     entries = []
@@ -568,11 +569,11 @@ def pin_triangles(pieces, joints):
     return out
 
 
-def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None):
+def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None, steps=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
     from .layout import joint_directions, layout
-    from .preview import render_preview
+    from .preview import plan_offsets, render_preview
 
     pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
@@ -592,7 +593,25 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None):
                 objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
             write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs])
         extras[pl.file] = write_plate
-    extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], colors, title=spec.name)
+    def write_preview(path):
+        # pins a shade darker than their piece, so that they stand out
+        shaded = []
+        for p, c in zip(pieces, colors):
+            flag = (pins or {}).get(p.id)
+            if flag is None:
+                shaded.append(np.asarray(c, np.uint8))
+            else:
+                tri = np.tile(np.asarray(c, np.uint8), (len(flag), 1))
+                tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
+                shaded.append(tri)
+        first = [pl for pl in placements if pl.plate == 1]
+        on_plate = [meshes[pl.name].copy().apply_transform(pl.transform) for pl in first]
+        plate_colors = [rgb.get(pl.name, (200, 200, 200)) for pl in first]
+        offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
+        render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
+                       plate=(on_plate, plate_colors, tuple(spec.output.plate)))
+
+    extras["preview.png"] = write_preview
     return placements, plates, extras
 
 
