@@ -62,6 +62,12 @@ def validate(spec):
     summary = _run(run_validate, spec)
     click.echo(f"{spec}: valid — {summary['pieces']} pieces, {summary['joints']} joints, model "
                f"{summary['model']['volume_mm3']:.6g} mm^3, {summary['model']['handedness']}-handed")
+    if summary.get("fit"):
+        from .check import fit_line
+
+        click.echo(f"fit: {fit_line(summary['fit'])}")
+        for warning in summary["fit"]["warnings"]:
+            click.echo(f"warning: {warning}", err=True)
 
 
 @cli.command()
@@ -88,6 +94,8 @@ def check(directory):
 
     result = _run(check_directory, directory)
     click.echo(f"{directory}: all checks hold ({result.get('summary', '')})")
+    for warning in (result.get("printability") or {}).get("warnings", []):
+        click.echo(f"warning: {warning}", err=True)
 
 
 def main():

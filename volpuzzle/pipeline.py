@@ -313,6 +313,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     if sampling is not None:
         checks["max_surface_error_mm"] = round(float(sampling.max_error_mm), 6)
     assert_passed(checks)
+    for warning in _fit(spec, joints)["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
     dowels = []
     if spec.joints.style == "dowel":
         from .geometry import to_trimesh
@@ -334,6 +336,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         entry["label"] = labels.get(p.id)
         entry["print"] = _print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
         entries.append(entry)
+    pictures = [f"steps/step-{n:02d}.png" for n in range(1, len(assembly["steps"]) + 1)]
     report = {
         "volpuzzle_version": __version__,
         "spec": spec_to_dict(spec),
@@ -342,9 +345,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "pieces": entries,
         "joints": [j.to_report() for j in joints],
         "checks": checks,
+        "fit": _fit(spec, joints),
         "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
         "assembly_order": assembly.pop("assembly_order"),
-        "assembly": assembly,
+        "assembly": dict(assembly, pictures=pictures),
         "timings_s": timer.timings,
     }
     if mesh_report is not None:
@@ -612,6 +616,11 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None, steps=N
                        plate=(on_plate, plate_colors, tuple(spec.output.plate)))
 
     extras["preview.png"] = write_preview
+    if steps:
+        from .preview import render_steps
+
+        extras["steps"] = lambda path: render_steps(path, [p.mesh for p in pieces], [p.id for p in pieces],
+                                                    colors, steps)
     return placements, plates, extras
 
 
@@ -622,4 +631,17 @@ def validate(spec_path):
     spec = load_spec(spec_path)
     stages = prepare(spec)
     return {"name": spec.name, "pieces": int(np.prod(spec.grid)), "joints": len(stages["joints"]),
-            "model": stages["model_report"], "randomize": stages["randomize_report"]}
+            "model": stages["model_report"], "randomize": stages["randomize_report"], "fit": _fit(spec, stages["joints"])}
+
+
+def _fit(spec, joints):
+    """Pin size and fit of the planned joints (the thinnest and shortest, when the joint stage sized them per
+    face), with warnings below the printable minimum (check.pin_fit)."""
+    from .check import pin_fit
+
+    j = spec.joints
+    if not joints:
+        return pin_fit("none", 0.0, 0.0, j.clearance, j.axial_clearance, spec.output.face_clearance)
+    return pin_fit(j.style, min(float(x.radius) for x in joints), min(float(x.length) for x in joints),
+                   max(float(x.clearance) for x in joints), max(float(x.axial_clearance) for x in joints),
+                   spec.output.face_clearance)

@@ -240,3 +240,92 @@ def _part(mesh, rgb):
     per_triangle = rgb.ndim == 2 and len(rgb) == len(mesh.faces)
     v, f, c = _simplified(mesh, colors=rgb if per_triangle else None)
     return v, f, (c if per_triangle else rgb.reshape(3))
+
+
+STEP_SIZE = (360, 270)  # pixels of one assembly step's picture
+_STEP_FACES = 300  # triangles per piece in step pictures: a sketch, many of them
+
+
+def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
+    """One small PNG per assembly step, directory/step-NN.png: the pieces placed so far in light grey, the block
+    added in this step in its colours, drawn back against its direction with an arrow to where it goes. Every
+    picture is framed on the whole puzzle, so the steps line up. meshes: Trimesh in mm; names: their piece ids;
+    colors (n, 3) uint8; steps: report.json assembly steps. -> list of file names, one per step."""
+    from pathlib import Path
+
+    from PIL import Image, ImageDraw
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    where = {n: i for i, n in enumerate(names)}
+    parts = [_simplified(m, faces=_STEP_FACES)[:2] for m in meshes]
+    right, up, eye = _view_axes()
+    every = np.concatenate([v for v, _ in parts])
+    reach = 0.6 * float(np.median([np.linalg.norm(np.ptp(v, axis=0)) for v, _ in parts]))
+    w, h = size
+    k = 1  # sketches: many of them, no supersampling
+    grey = np.full((len(parts), 3), 215, np.uint8)
+    seen_grey = [_visible([(*parts[i], grey[i])], [np.zeros(3)]) for i in range(len(parts))]
+    seen_own = [_visible([(*parts[i], colors[i])], [np.zeros(3)]) for i in range(len(parts))]
+    files, placed = [], set()
+    for n, step in enumerate(steps, start=1):
+        moving = [where[p] for p in (step.get("pieces") or [step.get("piece")]) if p in where]
+        d = step.get("direction")
+        back = -reach * np.asarray(d, float) if d is not None else np.zeros(3)
+        # the view never changes, so each piece's triangles facing the eye are found once
+        shown = [(seen_grey[i], np.zeros(3)) for i in sorted(placed - set(moving))]
+        shown += [(seen_own[i], back) for i in moving]
+        # frame: the whole puzzle and the block drawn back, the same scale for every step
+        frame = np.concatenate([every, every + back])
+        x, y = frame @ right, frame @ up
+        lo = np.array([x.min(), y.min()])
+        span = np.maximum(np.array([x.max(), y.max()]) - lo, 1e-9)
+        scale = min((w * k * 0.9) / span[0], (h * k * 0.82) / span[1])
+        img = np.ones((h * k, w * k, 3))
+        if shown:
+            tris = np.concatenate([t + off for (t, _, _), off in shown])
+            cols = np.concatenate([c for (_, c, _), _ in shown])
+            owner = np.repeat(np.arange(len(shown)), [len(t) for (t, _, _), _ in shown])
+        if shown and len(tris):
+            tx, ty = tris @ right, tris @ up
+            px = w * k / 2 + (tx - (lo[0] + span[0] / 2)) * scale
+            py = h * k * 0.54 - (ty - (lo[1] + span[1] / 2)) * scale
+            ibuf = rasterize(px, py, tris @ eye, w * k, h * k)
+            hit = ibuf >= 0
+            img[hit] = cols[ibuf[hit]]
+            part = np.where(hit, owner[np.maximum(ibuf, 0)], -1)
+            edge = np.zeros_like(hit)
+            edge[:, 1:] |= part[:, 1:] != part[:, :-1]
+            edge[1:, :] |= part[1:, :] != part[:-1, :]
+            img[edge & hit] *= _OUTLINE
+        pil = Image.fromarray(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+        draw = ImageDraw.Draw(pil)
+        if moving and d is not None:
+            centre = np.mean([parts[i][0].mean(axis=0) for i in moving], axis=0)
+
+            def to_px(p):
+                return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
+                        h * k * 0.54 - (p @ up - (lo[1] + span[1] / 2)) * scale)
+
+            a, b = np.array(to_px(centre + back)), np.array(to_px(centre + 0.25 * back))
+            _arrow(draw, a, b, width=3 * k)
+        _text(draw, w * k / 2, 4 * k, f"step {n}", 14 * k)
+        name = f"step-{n:02d}.png"
+        pil.reduce(k).save(directory / name, format="PNG", compress_level=1)
+        files.append(name)
+        placed.update(moving)
+    return files
+
+
+def _arrow(draw, a, b, width):
+    """A black arrow from a to b (pixels), its head at b."""
+    v = b - a
+    length = float(np.linalg.norm(v))
+    if length < 1e-6:
+        return
+    u = v / length
+    n = np.array([-u[1], u[0]])
+    head = min(0.35 * length, 8.0 * width)
+    draw.line([tuple(a), tuple(b - u * head * 0.5)], fill=(0, 0, 0), width=int(width))
+    draw.polygon([tuple(b), tuple(b - u * head + n * head * 0.5), tuple(b - u * head - n * head * 0.5)],
+                 fill=(0, 0, 0))

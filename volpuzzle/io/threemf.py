@@ -134,12 +134,13 @@ def _check_object(path, k, obj):
 
 
 def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Optional[Sequence] = None,
-              accent_rgb=DEFAULT_ACCENT) -> Path:
+              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins") -> Path:
     """Write one mesh object per entry, each placed by its own build item, each with one colour.
 
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,
     transform (3, 4) [R | t] | None). materials: None, or per object None | (m,) int array marking each
-    triangle 0 = the object's colour, 1 = the second material (accent_rgb, e.g. pins).
+    triangle 0 = the object's colour, 1 = the second material (accent_rgb, named accent_name: what it marks).
+    Materials are named for what they are: "piece <name>" for an object's own colour.
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
     path = Path(path)
@@ -149,11 +150,11 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     if materials is not None and len(materials) != len(objects):
         raise ExportError(f"{path}: materials: got {len(materials)} entries, expected one per object ({len(objects)})")
     with _LOCK:
-        _write_model(path, objects, unit, materials, accent_rgb)
+        _write_model(path, objects, unit, materials, accent_rgb, accent_name)
     return path
 
 
-def _write_model(path, objects, unit, materials, accent_rgb) -> None:
+def _write_model(path, objects, unit, materials, accent_rgb, accent_name="pins") -> None:
     _, L, w = _lib()
     try:
         model = w.CreateModel()
@@ -171,7 +172,7 @@ def _write_model(path, objects, unit, materials, accent_rgb) -> None:
             own_pid = None
             if rgb is not None:
                 r, g, b = (int(x) for x in rgb)
-                own_pid = group.AddMaterial(name, w.RGBAToColor(r, g, b, 255))
+                own_pid = group.AddMaterial(f"piece {name}", w.RGBAToColor(r, g, b, 255))
                 mesh_obj.SetObjectLevelProperty(group.GetResourceID(), own_pid)
             mat = None if materials is None else materials[k]
             if mat is not None:
@@ -183,7 +184,7 @@ def _write_model(path, objects, unit, materials, accent_rgb) -> None:
                     raise ExportError(f"{path}: object {name!r}: a second material needs the object's own colour too")
                 if accent_pid is None:
                     r, g, b = (int(x) for x in accent_rgb)
-                    accent_pid = group.AddMaterial("second-material", w.RGBAToColor(r, g, b, 255))
+                    accent_pid = group.AddMaterial(str(accent_name), w.RGBAToColor(r, g, b, 255))
                 pids = np.where(mat == 1, accent_pid, own_pid).astype(np.uint32)
                 _set_triangle_materials(L, w, mesh_obj, group.GetResourceID(), pids)
             item = model.AddBuildItem(mesh_obj, _transform(L, transform))
