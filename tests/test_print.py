@@ -98,3 +98,127 @@ def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
         assert magenta[:, cols].sum() > 200 and green[:, cols].sum() > 200
     grey = ((np.ptp(px, axis=2) < 4) & (px[:, :, 0] > 100) & (px[:, :, 0] < 250))[:, 1600:]
     assert grey.sum() > 1000  # the bed under the plate view
+
+
+def test_check_from_files_finds_faces_that_close():
+    from volpuzzle.check import check_printability
+
+    report = {"spec": {"output": {"face_clearance": 0.3, "labels": False}}, "pieces": [], "joints": []}
+    _, _, plain = _pieces("warped", 0.0)
+    _, _, gapped = _pieces("warped", 0.3)
+    closed = check_printability(report, {p.id: p.mesh for p in plain})
+    assert any("face each other 0.000 mm apart" in f for f in closed["failures"])
+    ok = check_printability(report, {p.id: p.mesh for p in gapped})
+    assert ok["failures"] == [] and ok["median_face_gap_mm"] == pytest.approx(0.3, rel=0.02)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# bed contact, pins up, margin
+
+
+def test_a_piece_without_a_flat_face_gets_a_base_cut_that_holds_it():
+    from volpuzzle.layout import MIN_BED_MM2, base_cut, bed_contact, plan_pose
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=15.0)
+    assert bed_contact(ball.vertices, ball.faces) < MIN_BED_MM2  # on a point, as it is
+    pose = plan_pose(ball)
+    assert 0 < pose.base_cut_mm <= 0.6
+    cut, removed = base_cut(ball, pose)
+    G.check_solid(cut, "cut ball")
+    assert removed == pytest.approx(ball.volume - cut.volume, rel=1e-6) and 0 < removed < 0.01 * ball.volume
+    placed = cut.copy().apply_transform(pose.rotation)
+    assert bed_contact(placed.vertices, placed.faces) >= 25.0 - 1e-6  # BASE_TARGET[0]
+    # the cut is on the side that goes down
+    lowest = placed.vertices[:, 2].min()
+    flat = placed.face_normals[:, 2] < -0.999
+    assert np.all(placed.triangles_center[flat][:, 2] < lowest + 1e-6)
+
+
+def test_a_flat_face_needs_no_cut_and_pins_go_up():
+    from volpuzzle.layout import PIN_UP_DEG, plan_pose
+
+    cube = trimesh.creation.box([20, 20, 20])
+    pin = np.array([1.0, 0.0, 0.0])
+    pose = plan_pose(cube, [pin])
+    assert pose.base_cut_mm == 0 and pose.bed_contact_mm2 == pytest.approx(400.0, rel=1e-3)
+    assert pose.pins_up == 1 and (pose.rotation[:3, :3] @ pin)[2] >= np.cos(np.radians(PIN_UP_DEG))
+    # a hole must not open onto the bed: with its opening along -z the cube is not laid on its top
+    pose = plan_pose(cube, [], [np.array([0.0, 0.0, 1.0])])
+    assert pose.holes_down == 0 and (pose.rotation[:3, :3] @ np.array([0.0, 0.0, 1.0]))[2] > -0.5
+
+
+def test_layout_keeps_the_margin_and_centres_the_plate():
+    from volpuzzle.layout import layout
+
+    rng = np.random.default_rng(5)
+    parts = [(f"p{i}", trimesh.creation.box(rng.uniform(10, 30, 3))) for i in range(6)]
+    plate, margin = np.array([250.0, 210.0]), 10.0
+    placements, plates = layout(parts, plate, 4.0, margin=margin)
+    meshes = dict(parts)
+    for pl in plates:
+        boxes = np.array([meshes[p.name].copy().apply_transform(p.transform).bounds for p in placements
+                          if p.plate == pl.index])
+        lo, hi = boxes[:, 0, :2].min(axis=0), boxes[:, 1, :2].max(axis=0)
+        assert np.all(lo >= margin - 1e-6) and np.all(hi <= plate - margin + 1e-6)
+        assert (lo + hi) / 2 == pytest.approx(plate / 2, abs=1e-6)
+
+
+def test_margin_that_leaves_no_room_is_refused(tmp_path):
+    from helpers_build import write_spec
+
+    from volpuzzle.errors import SpecError
+    from volpuzzle.spec import load_spec
+
+    spec = write_spec(tmp_path, {"name": "m", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 1],
+                                 "output": {"plate": [100, 60], "margin": 30}})
+    with pytest.raises(SpecError, match=r"output.margin: leaves no room on the plate \(got 30, expected less than "):
+        load_spec(spec)
+    spec = write_spec(tmp_path, {"name": "m", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 1],
+                                 "output": {"face_clearance": 2}})
+    with pytest.raises(SpecError, match=r"output.face_clearance: would leave the pieces loose \(got 2, expected"):
+        load_spec(spec)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# a small build: every piece labelled, on the bed, and the files say so
+
+
+@pytest.mark.slow
+def test_small_build_every_piece_labelled_on_its_bed_and_checked_from_files(tmp_path):
+    import json
+
+    from helpers_build import write_spec
+
+    import volpuzzle
+    from volpuzzle.check import check_directory
+
+    spec = write_spec(tmp_path, {"name": "small", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 2],
+                                 "randomize": {"seed": 1, "amplitude": 0.2, "control_points": 5},
+                                 "output": {"directory": str(tmp_path / "out"), "tolerance": 0.3}})
+    report = volpuzzle.build(spec, jobs=1)
+    out = tmp_path / "out"
+    written = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    joints = written["joints"]
+    for p in written["pieces"]:
+        assert p["label"]["text"], p["id"]
+        assert p["print"]["bed_contact_mm2"] >= 10.0
+        if not p["label"]["on_joint_face"]:
+            # no joint of the piece opens on the label's face
+            n, c = np.array(p["label"]["normal"]), np.array(p["label"]["center_mm"])
+            for j in joints:
+                if p["id"] in (j["pin_piece"], j["hole_piece"]):
+                    assert not (abs(np.dot(j["direction"], n)) > 0.7 and abs(np.dot(np.array(j["center_mm"]) - c, n)) < 2)
+    assert report["checks"]["face_clearance_mm"] == 0.15 and report["checks"]["face_clearance_mm3"] > 0
+    printable = check_directory(out)["printability"]
+    assert printable["unlabelled"] == [] and printable["pieces_under_bed_minimum"] == []
+    assert printable["median_face_gap_mm"] == pytest.approx(0.15, rel=0.05)
+    md = (out / "report.md").read_text(encoding="utf-8")
+    assert "Every piece carries a label" in md and "## Fit" in md and "face clearance 0.15 mm" in md
+    html = (out / "instructions.html").read_text(encoding="utf-8")
+    steps = written["assembly"]["pictures"]
+    assert steps and all((out / s).is_file() for s in steps) and html.count("<li>") == len(steps)
+    plate = written["plates"][0]
+    from volpuzzle.io.threemf import read_3mf
+
+    xy = np.concatenate([v[:, :2] for _, v, _, _ in read_3mf(out / plate["file"])])
+    assert xy.min() >= 10.0 - 1e-3 and np.all(xy.max(axis=0) <= np.array([250.0, 210.0]) - 10.0 + 1e-3)
