@@ -87,7 +87,7 @@ def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
     box = trimesh.creation.box([20, 20, 20])
     per_tri = np.tile(np.array([[30, 200, 30]], np.uint8), (len(box.faces), 1))
     per_tri[box.face_normals[:, 2] > 0.5] = (200, 30, 200)  # the top painted another colour
-    render_preview(tmp_path / "p.png", [box], [per_tri], plate=([box], [per_tri], (60, 50)))
+    render_preview(tmp_path / "p.png", [box], [per_tri], plate=([(0, np.eye(4))], (60, 50)))
     img = Image.open(tmp_path / "p.png")
     assert img.size == (2400, 800)
     px = np.asarray(img.convert("RGB")).astype(int)

@@ -608,12 +608,11 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, poses=None, steps=N
                 tri = np.tile(np.asarray(c, np.uint8), (len(flag), 1))
                 tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
                 shaded.append(tri)
-        first = [pl for pl in placements if pl.plate == 1]
-        on_plate = [meshes[pl.name].copy().apply_transform(pl.transform) for pl in first]
-        plate_colors = [rgb.get(pl.name, (200, 200, 200)) for pl in first]
+        index = {p.id: k for k, p in enumerate(pieces)}
+        on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
         offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
         render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
-                       plate=(on_plate, plate_colors, tuple(spec.output.plate)))
+                       plate=(on_plate, tuple(spec.output.plate)))
 
     extras["preview.png"] = write_preview
     if steps:

@@ -197,8 +197,8 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
 
     meshes: list of Trimesh in mm; colors: (n, 3) uint8, or a list with one (3,) colour or one (m, 3) uint8 array of
     per-triangle colours per mesh; offsets: (n, 3) mm for the exploded view (plan_offsets), default radial from the
-    centre; plate: (meshes on the plate, their colours like `colors`, (w, d) plate size mm), drawn in a third panel
-    (size is then widened by half)."""
+    centre; plate: ([(index into meshes, (4, 4) transform to the plate)], (w, d) plate size mm), drawn in a third
+    panel (size is then widened by half)."""
     from PIL import Image, ImageDraw
 
     k = SUPERSAMPLE
@@ -210,12 +210,16 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
     exploded = _radial(meshes, explode) if offsets is None else np.asarray(offsets, float)
     views = [(parts, np.zeros((len(parts), 3)), "assembled"), (parts, exploded, "exploded")]
     if plate is not None:
-        on_plate, plate_colors, (pw, pd) = plate
+        on_plate, (pw, pd) = plate
         import trimesh
 
         bed = trimesh.creation.box([pw, pd, 1.0])
         bed.apply_translation([pw / 2, pd / 2, -0.5])
-        bed_parts = [_part(bed, (225, 225, 225))] + [_part(m, c) for m, c in zip(on_plate, plate_colors)]
+        bed_parts = [_part(bed, (225, 225, 225))]
+        for i, m in on_plate:  # the simplified piece, moved: simplifying once serves every view
+            v, f, c = parts[i]
+            m = np.asarray(m, float)
+            bed_parts.append((v @ m[:3, :3].T + m[:3, 3], f, c))
         views.append((bed_parts, np.zeros((len(bed_parts), 3)), "plate 1"))
     img = np.ones((h, w, 3))
     top = int(0.09 * h)
