@@ -222,3 +222,32 @@ def test_small_build_every_piece_labelled_on_its_bed_and_checked_from_files(tmp_
 
     xy = np.concatenate([v[:, :2] for _, v, _, _ in read_3mf(out / plate["file"])])
     assert xy.min() >= 10.0 - 1e-3 and np.all(xy.max(axis=0) <= np.array([250.0, 210.0]) - 10.0 + 1e-3)
+
+
+def test_pins_below_the_printable_minimum_are_warned_of():
+    from volpuzzle.check import fit_line, pin_fit
+
+    fit = pin_fit("pin", 0.8, 2.0, 0.15, 0.3, 0.15)
+    assert fit["pin_diameter_mm"] == 1.6
+    assert fit["warnings"] == [
+        "joints.radius: pins of radius 0.8 mm are below the printable minimum (expected at least 1 mm)",
+        "joints.length: pins 2 mm long are below the printable minimum (expected at least 3 mm)"]
+    assert pin_fit("pin", 2.5, 6, 0.15, 0.3, 0.15)["warnings"] == []
+    assert "5 mm across, 6 mm long, clearance 0.15 mm radial" in fit_line(pin_fit("pin", 2.5, 6, 0.15, 0.3, 0.15))
+
+
+def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
+    from volpuzzle.check import check_printability
+
+    cone = trimesh.creation.cone(radius=10, height=20)
+    flip = trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0])  # tip down
+    report = {"spec": {"output": {"face_clearance": 0.0}},
+              "pieces": [{"id": "p0", "print": {"plate_transform": flip.tolist()}, "label": {"text": "p0"}}],
+              "joints": [{"pin_piece": "p0", "hole_piece": "p1", "radius_mm": 0.5, "length_mm": 6, "style": "pin"}]}
+    result = check_printability(report, {"p0": cone})
+    assert result["pieces_under_bed_minimum"] == ["p0"]
+    assert "pieces p0 rest on less than 10 mm^2 of the bed" in result["failures"]
+    assert any(f.startswith("joint p0 -> p1: joints.radius: pins of radius 0.5 mm are below") for f in result["failures"])
+    upright = check_printability(dict(report, joints=[]), {"p0": cone.copy().apply_transform(flip)})
+    # the same transform applied to a cone already tip down puts it on its base
+    assert upright["failures"] == [] and upright["min_bed_contact_mm2"] > 300
