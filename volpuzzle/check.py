@@ -427,7 +427,9 @@ def check_printability(report: dict, meshes: dict) -> dict:
     if labels_on and unlabelled:
         warnings.append(f"pieces {', '.join(unlabelled)} carry no label")
     spec_out = (report.get("spec") or {}).get("output") or {}
-    face_clearance = float(spec_out.get("face_clearance", 0.0) or 0.0)
+    # the clearance the build applied (none for a mesh model yet), else the spec's
+    face_clearance = float((report.get("checks") or {}).get("face_clearance_mm", spec_out.get("face_clearance", 0.0))
+                           or 0.0)
     joints = report.get("joints") or []
     for j in joints:
         fit = pin_fit(j.get("style", "pin"), float(j.get("radius_mm", 0)), float(j.get("length_mm", 0)), 0, 0, 0)

@@ -924,10 +924,9 @@ def cell_surface(cell, sampling, fmap, grid=None, face_clearance=0.0):
     return geometry.weld(xyz, faces, _WELD_MM)
 
 
-def face_clearance_volume(sampling, face_clearance, inside=None):
+def face_clearance_volume(sampling, face_clearance):
     """mm^3 that a face clearance takes out of the puzzle: the clearance times the area of every cut face, each
-    shared face counted once (corners and edges add terms of order clearance^2 only). inside: optional callable
-    (k, 3) points -> (k,) bool, counting only triangles whose centre it accepts (a mesh model's own solid)."""
+    shared face counted once (corners and edges add terms of order clearance^2 only)."""
     if face_clearance <= 0:
         return 0.0
     area = 0.0
@@ -936,10 +935,7 @@ def face_clearance_volume(sampling, face_clearance, inside=None):
         if not _is_cut_face((a, g), sampling):
             continue
         t = sampling.xyz[fm.ids[fm.tris]]
-        tri_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
-        if inside is not None:
-            tri_area = tri_area[np.asarray(inside(t.mean(axis=1)), bool)]
-        area += float(tri_area.sum())
+        area += float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
     return face_clearance * area
 
 

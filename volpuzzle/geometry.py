@@ -132,33 +132,6 @@ def _row_keys(a, b):
     return inv[:len(a)], inv[len(a):]
 
 
-def inside_mesh(mesh, points, max_faces=2000):
-    """(k,) bool: points (k, 3) inside the closed mesh, by its generalized winding number (> 1/2), summed over a
-    simplified copy of at most max_faces triangles (only points within a few of its edge lengths of the surface can
-    be misjudged). Plain numpy: trimesh's own test needs a ray engine we do not depend on."""
-    v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
-    if len(f) > max_faces:
-        import fast_simplification
-
-        vs, fs = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
-                                              target_reduction=1.0 - max_faces / len(f))
-        if len(fs):
-            v, f = np.asarray(vs, float), np.asarray(fs, np.int64)
-    p = np.asarray(points, float).reshape(-1, 3)
-    tri = v[f]
-    total = np.zeros(len(p))
-    step = max(1, 400000 // max(len(f), 1))  # points per round: about 400k point-triangle pairs in memory
-    for i0 in range(0, len(p), step):
-        # van Oosterom and Strackee's solid angle of each triangle seen from each point
-        a, b, c = (tri[None, :, k] - p[i0:i0 + step, None] for k in range(3))
-        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
-        det = np.einsum("pti,pti->pt", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("pti,pti->pt", a, b) * lc + np.einsum("pti,pti->pt", b, c) * la
-               + np.einsum("pti,pti->pt", c, a) * lb)
-        total[i0:i0 + step] = np.arctan2(det, den).sum(axis=1) / (2 * np.pi)
-    return total > 0.5
-
-
 def trim(m, normal, offset, what):
     """The part of Manifold m on the side `normal` points to of the plane normal . x = offset, status checked."""
     return _check(_check(m, what, "trimming by a plane (operand)").trim_by_plane(tuple(float(x) for x in normal),
