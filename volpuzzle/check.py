@@ -454,7 +454,8 @@ def check_printability(report: dict, meshes: dict) -> dict:
     pins_up = sum(((e.get("print") or {}).get("pins_up") or 0) for e in entries.values())
     return {"bed_contact_mm2": contact, "min_bed_contact_mm2": min(contact.values()) if contact else None,
             "pieces_under_bed_minimum": under, "min_face_gap_mm": None if gap is None else round(gap, 4),
-            "face_gap_pair": pair, "median_face_gap_mm": None if median is None else round(median, 4), "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
+            "face_gap_pair": pair,
+            "median_face_gap_mm": None if median is None else round(median, 4), "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
             "failures": failures, "warnings": warnings}
 
 

@@ -23,8 +23,8 @@ import trimesh
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import write_3mf
 
-__all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS",
-           "render_instructions_html", "assembly_sentences"]
+__all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md", "dumps_report", "FORMATS"]
+__all__ += ["render_instructions_html", "assembly_sentences"]
 
 FORMATS = ("stl", "3mf")
 # Significant digits kept for floats in report.json: far below print resolution, free of 0.30000000000000004.

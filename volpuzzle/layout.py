@@ -29,7 +29,7 @@ BASE_CUT_MM = (0.2, 0.3, 0.4, 0.5, 0.6)  # base cut depths tried, shallowest fir
 FIRST_SLICE_MM = 0.1  # a slicer cuts its first 0.2 mm layer here: what it finds is the piece's contact with the bed
 TALL_RATIO = 4.0  # height over the side of the base (the square root of its area) a piece stands up to
 PIN_UP_DEG = 30.0  # a pin within this angle of vertical prints round and strong, with no support
-PIN_UP_WEIGHT = 0.3  # a pin up is worth this share of the piece's surface area in overhang (pins lying down print oval and weak)
+PIN_UP_WEIGHT = 0.3  # a pin up is worth this share of the piece's surface area in overhang (lying, it prints oval)
 
 
 @dataclass(frozen=True, eq=False)

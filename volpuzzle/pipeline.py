@@ -239,8 +239,8 @@ def _check_plate(spec, tiling, fmap):
     need = np.max([footprint(p, True) for p in pts], axis=0)
     if np.any(need > plate + 1e-9):
         raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with "
-                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least [{np.ceil(need[0]):.0f}, "
-                        f"{np.ceil(need[1]):.0f}])", source=spec.source)
+                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least "
+                        f"[{np.ceil(need[0]):.0f}, {np.ceil(need[1]):.0f}])", source=spec.source)
 
 
 def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None):
