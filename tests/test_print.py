@@ -253,3 +253,23 @@ def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
     upright = check_printability(dict(report, joints=[]), {"p0": cone.copy().apply_transform(flip)})
     # the same transform applied to a cone already tip down puts it on its base
     assert upright["failures"] == [] and upright["min_bed_contact_mm2"] > 300
+
+
+def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():
+    from volpuzzle.geometry import from_trimesh
+    from volpuzzle.label import DEPTH_MM, engrave_bed
+
+    slab = trimesh.creation.box([30, 20, 8])
+    turn = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])  # printed on its 30 x 8 side
+    body = from_trimesh(slab, "slab")
+    out, site = engrave_bed(body, turn, "p1-0-0")
+    assert site["face"] == "bed" and site["mirrored"] and site["height_mm"] >= 2.5
+    removed = body.volume() - out.volume()
+    assert removed > 0
+    # every bit taken lies within the groove's depth of the bed side: turned back, the y = -10 face
+    groove = body - out
+    lo, hi = np.asarray(groove.bounding_box()).reshape(2, 3)
+    assert lo[1] >= -10 - 1e-6 and hi[1] <= -10 + DEPTH_MM + 1e-6
+    assert np.allclose(site["normal"], [0, -1, 0], atol=1e-9)
+    tiny = trimesh.creation.box([3, 3, 3])
+    assert engrave_bed(from_trimesh(tiny, "tiny"), np.eye(4), "p0-0-0")[1] is None

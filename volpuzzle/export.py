@@ -275,6 +275,10 @@ def _printing_md(pieces, spec) -> list:
             out += ["", "Pieces that could not be labelled:"] + [f"- {pid}: {why}" for pid, why in missing]
         else:
             out += ["", f"Every piece carries a label ({len(pieces)} of {len(pieces)})."]
+        mirrored = [p["id"] for p in pieces if (p.get("label") or {}).get("face") == "bed"]
+        if mirrored:
+            out += ["", "Labels engraved mirrored on the bed side (no inner face held them; they read from below): "
+                    + ", ".join(mirrored) + "."]
         if renamed:
             out += ["", "Labels shortened to the piece's number: "
                     + ", ".join(f"`{t}` = {pid}" for pid, t in renamed) + "."]

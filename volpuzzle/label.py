@@ -773,3 +773,53 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
     if not reasons:
         return body, None, "no inner face large enough and clear of the joints"
     return body, None, "no site held it: " + "; ".join(sorted(set(reasons))[:3])
+
+
+def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
+    """The last resort for a piece with no inner face that holds its id: the text engraved mirrored into the side
+    that rests on the bed, so it reads from below once printed. body: Manifold in assembled mm; rotation (4, 4) to
+    the print orientation (the bed below). -> (Manifold, report dict) or (body, None) when the bed side holds no text
+    MARGIN_MM inside its outline (holes included) with FINE_STROKE_MM strokes."""
+    from .geometry import boolean
+
+    m3 = _m3()
+    rot = np.asarray(rotation, float)
+    placed = body.transform(rot[:3, :])
+    lowest = float(placed.bounding_box()[2])
+    section = placed.slice(lowest + 0.05)
+    inner = section.offset(-MARGIN_MM, m3.JoinType.Round)
+    if inner.is_empty():
+        return body, None
+    x0, y0, x1, y1 = inner.bounds()
+    full = float(inner.area())
+    for stroke in (MIN_STROKE_MM, FINE_STROKE_MM):
+        for height in (MAX_HEIGHT_MM, 6.0, 5.0, 4.0, 3.0, 2.5):
+            cs = text_cross_section(text, height, stroke)
+            if cs is None:
+                continue
+            cs = cs.mirror((1.0, 0.0))  # seen from below, through the bed
+            for turn in (0.0, 90.0):
+                glyphs = cs.rotate(turn)
+                gx0, gy0, gx1, gy1 = glyphs.bounds()
+                box = m3.CrossSection.square((gx1 - gx0, gy1 - gy0)).translate((gx0, gy0))
+                for fx in np.linspace(0.2, 0.8, 7):
+                    for fy in np.linspace(0.2, 0.8, 7):
+                        at = (x0 + fx * (x1 - x0), y0 + fy * (y1 - y0))
+                        moved = box.translate(at)
+                        if (moved - inner).area() > 1e-6 * full:
+                            continue
+                        # the groove from below the bed up to `depth` into the piece, back in assembled mm
+                        prism = m3.Manifold.extrude(glyphs.translate(at), depth + 0.5).translate(
+                            (0.0, 0.0, lowest - 0.5))
+                        groove = prism.transform(np.linalg.inv(rot)[:3, :])
+                        out = boolean(body, groove, "difference", what or f"piece labelled {text}")
+                        if out.is_empty() or len(out.decompose()) != len(body.decompose()):
+                            continue
+                        centre = np.linalg.inv(rot) @ np.array([at[0] + (gx0 + gx1) / 2, at[1] + (gy0 + gy1) / 2,
+                                                                lowest, 1.0])
+                        down = np.linalg.inv(rot)[:3, :3] @ np.array([0.0, 0.0, -1.0])
+                        return out, {"text": str(text), "face": "bed", "mirrored": True,
+                                     "height_mm": round(float(height), 3),
+                                     "center_mm": [round(float(x), 4) for x in centre[:3]],
+                                     "normal": [round(float(x), 6) for x in down], "on_joint_face": False}
+    return body, None

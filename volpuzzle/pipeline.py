@@ -272,6 +272,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress, poses)
         with timer("layout", progress):
             pieces, cut = _base_cuts(pieces, poses)
+        if spec.output.labels:
+            with timer("label", progress):
+                pieces, more = _bed_labels(pieces, labels, poses)
+            engraved += more
         with timer("check", progress):
             pieces = _printable(pieces)
             checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut)
@@ -438,6 +442,35 @@ def _poses(pieces, joints):
 
     pins, openings = joint_directions(joints)
     return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
+
+
+def _bed_labels(pieces, labels, poses):
+    """Pieces left without a label get it mirrored on their bed side (after the base cut, which would take it off).
+    Updates labels in place. -> (pieces, mm^3 removed)"""
+    import dataclasses
+
+    from .geometry import from_trimesh, to_trimesh
+    from .label import engrave_bed
+
+    out, removed = [], 0.0
+    for k, p in enumerate(pieces):
+        entry = labels.get(p.id)
+        pose = poses.get(p.id)
+        if (entry or {}).get("text") or pose is None:
+            out.append(p)
+            continue
+        body = from_trimesh(p.mesh, p.id)
+        for text in (p.id, str(k + 1)):
+            new, site = engrave_bed(body, pose.rotation, text, what=p.id)
+            if site is not None:
+                volume = float(new.volume())
+                mesh = to_trimesh(new)
+                removed += p.volume - volume
+                p = dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces)))
+                labels[p.id] = site
+                break
+        out.append(p)
+    return _like(pieces, out), removed
 
 
 def _base_cuts(pieces, poses):
