@@ -284,6 +284,11 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         return pieces, labels, engraved, checks
 
     clearance = spec.output.face_clearance
+    if clearance > 0 and joints and spec.joints.space == "domain":
+        # pins built in the domain are cut on the cell's own parameter box, whose faces are not set back
+        print(f"warning: output.face_clearance: not applied with joints.space: domain (got {clearance:g} mm, the "
+              f"cut faces meet)", file=sys.stderr)
+        clearance = 0.0
     if stages["model"].mesh is not None:
         if clearance > 0:
             # Fragments of a cage cell are merged into the neighbour they touch and joints are kept inside two
