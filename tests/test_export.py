@@ -54,7 +54,8 @@ def test_write_build_files_read_back(tmp_path, pieces, fmt):
     assert out == target and target.is_dir() and leftovers(target.parent) == []
     names = sorted(str(p.relative_to(target)) for p in target.rglob("*") if p.is_file())
     assert names == sorted([f"pieces/{p.id}.{fmt}" for p in pieces]
-                           + [f"dowels/dowel-00.{fmt}", "puzzle.3mf", "report.json", "report.md", ".volpuzzle"])
+                           + [f"dowels/dowel-00.{fmt}", "instructions.html", "puzzle.3mf", "report.json",
+                              "report.md", ".volpuzzle"])
     for p in pieces:
         path = target / "pieces" / f"{p.id}.{fmt}"
         if fmt == "stl":

@@ -101,7 +101,7 @@ def test_full_spec_round_trips_through_spec_to_dict(folder, monkeypatch):
                    "axial_clearance": 0.4, "space": "domain", "min_radius": 0.8, "min_length": 2.5,
                    "allow": ["welded"]},
         "output": {"directory": "build/x", "format": "3mf", "tolerance": 0.1, "plate": [200, 200],
-                   "spacing": 3, "labels": False},
+                   "spacing": 3, "labels": False, "margin": 5, "face_clearance": 0.1},
     }
     spec = load(folder, data)
     assert spec.model.unit_scale == 10.0 and spec.model.patch == 1
@@ -115,7 +115,9 @@ def test_full_spec_round_trips_through_spec_to_dict(folder, monkeypatch):
     assert set(d) == {"name", "model", "grid", "splits", "periodic", "randomize", "joints", "output"}
     assert set(d["joints"]) == {"style", "shape", "radius", "length", "clearance", "axial_clearance", "space",
                                 "min_radius", "min_length", "allow"}
-    assert set(d["output"]) == {"directory", "format", "tolerance", "plate", "spacing", "labels"}
+    assert set(d["output"]) == {"directory", "format", "tolerance", "plate", "spacing", "labels", "margin",
+                                "face_clearance"}
+    assert spec.output.margin == 5 and spec.output.face_clearance == 0.1
     assert load(folder, d) == spec
 
     minimal = spec_to_dict(load(folder, base()))

@@ -20,7 +20,7 @@ from .errors import GeometryError, ModelError, VolpuzzleError
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
-           "check_joint_graph"]
+           "check_joint_graph", "check_printability", "pin_fit", "fit_line"]
 
 # id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
 # (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
@@ -549,8 +549,9 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     joint_failures = check_joints(dict(pieces), joints)
     checks["joints_checked"] = len(joints)
     graph_failures, checks["joint_graph"] = check_joint_graph(report)
+    checks["printability"] = check_printability(report, dict(pieces))
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
-                          + joint_failures + graph_failures)
+                          + joint_failures + graph_failures + checks["printability"]["failures"])
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "
@@ -576,3 +577,138 @@ def _small_int(text):
     if len(text.lstrip("-")) > 30:
         raise ValueError(f"a number of {len(text.lstrip('-'))} digits ({text[:12]}...), expected at most 30")
     return int(text)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# printability: what a maker's printer needs, checked from the files as well as during the build
+
+PIN_MIN_RADIUS_MM = 1.0  # a thinner pin snaps or prints as a blob with a 0.4 mm nozzle
+PIN_MIN_LENGTH_MM = 3.0  # a shorter one does not hold
+BED_MIN_MM2 = 10.0  # less than this on the bed and the first layer has nothing to hold
+
+
+def pin_fit(style, radius, length, clearance, axial_clearance, face_clearance):
+    """Pin size and fit for people -> {"pin_diameter_mm", "pin_length_mm", "clearance_mm", "axial_clearance_mm",
+    "face_clearance_mm", "style", "warnings": [sentences]}; a warning when the pin is below the printable minimum."""
+    warnings = []
+    if style in ("pin", "dowel"):
+        if radius < PIN_MIN_RADIUS_MM:
+            warnings.append(f"joints.radius: pins of radius {radius:g} mm are below the printable minimum "
+                            f"(expected at least {PIN_MIN_RADIUS_MM:g} mm)")
+        if length < PIN_MIN_LENGTH_MM:
+            warnings.append(f"joints.length: pins {length:g} mm long are below the printable minimum "
+                            f"(expected at least {PIN_MIN_LENGTH_MM:g} mm)")
+    return {"style": style, "pin_diameter_mm": 2 * float(radius), "pin_length_mm": float(length),
+            "clearance_mm": float(clearance), "axial_clearance_mm": float(axial_clearance),
+            "face_clearance_mm": float(face_clearance), "warnings": warnings}
+
+
+def fit_line(fit):
+    """One line saying the pin size and fit."""
+    if fit.get("style") not in ("pin", "dowel"):
+        return f"no pins; face clearance {fit['face_clearance_mm']:g} mm"
+    return (f"{fit['style']}s {fit['pin_diameter_mm']:g} mm across, {fit['pin_length_mm']:g} mm long, clearance "
+            f"{fit['clearance_mm']:g} mm radial and {fit['axial_clearance_mm']:g} mm at the tip; face clearance "
+            f"{fit['face_clearance_mm']:g} mm")
+
+
+def _mesh_contact(mesh, transform):
+    from .layout import bed_contact
+
+    return bed_contact(mesh.vertices, mesh.faces, transform)
+
+
+def check_printability(report: dict, meshes: dict) -> dict:
+    """Printability from the files: bed contact of each piece in its print orientation (report.json pieces[].print
+    .plate_transform applied to the piece file), the gap between neighbouring pieces (at least the face clearance,
+    less what the joints' own clearances allow), pin sizes against the printable minimum, a label per piece.
+    meshes: {piece id: closed trimesh in mm}. -> {"bed_contact_mm2": {id: mm^2}, "min_bed_contact_mm2",
+    "pieces_under_bed_minimum", "min_face_gap_mm", "face_gap_pair", "unlabelled", "pins_up", "pins",
+    "failures": [sentences], "warnings": [sentences]}"""
+    failures, warnings = [], []
+    entries = {e.get("id"): e for e in report.get("pieces") or []}
+    contact, under = {}, []
+    for pid, mesh in meshes.items():
+        pose = (entries.get(pid) or {}).get("print") or {}
+        transform = pose.get("plate_transform")
+        if transform is None:
+            warnings.append(f"piece {pid}: report.json gives no print orientation; its bed contact was not checked")
+            continue
+        try:
+            contact[pid] = round(_mesh_contact(mesh, np.asarray(transform, float)), 2)
+        except GeometryError as e:
+            failures.append(f"piece {pid}: bed contact not measured ({e})")
+            continue
+        if contact[pid] < BED_MIN_MM2:
+            under.append(pid)
+    if under:
+        failures.append(f"pieces {', '.join(under)} rest on less than {BED_MIN_MM2:g} mm^2 of the bed")
+    unlabelled = [pid for pid in meshes if not ((entries.get(pid) or {}).get("label") or {}).get("text")]
+    labels_on = (report.get("spec") or {}).get("output", {}).get("labels", True)
+    if labels_on and unlabelled:
+        warnings.append(f"pieces {', '.join(unlabelled)} carry no label")
+    spec_out = (report.get("spec") or {}).get("output") or {}
+    # the clearance the build applied (none for a mesh model yet), else the spec's
+    face_clearance = float((report.get("checks") or {}).get("face_clearance_mm", spec_out.get("face_clearance", 0.0))
+                           or 0.0)
+    joints = report.get("joints") or []
+    thin = [j for j in joints if pin_fit(j.get("style", "pin"), float(j.get("radius_mm", 0)),
+                                         float(j.get("length_mm", 0)), 0, 0, 0)["warnings"]]
+    if thin:
+        # a warning, as in the build: the printable minimum pin is the joint stage's to enforce
+        r = min(float(j.get("radius_mm", 0)) for j in thin)
+        length = min(float(j.get("length_mm", 0)) for j in thin)
+        warnings.append(f"{len(thin)} of {len(joints)} joints (first {thin[0].get('pin_piece')} -> "
+                        f"{thin[0].get('hole_piece')}) have pins below the printable minimum (radius down to {r:g} "
+                        f"mm, length down to {length:g} mm; expected at least {PIN_MIN_RADIUS_MM:g} and "
+                        f"{PIN_MIN_LENGTH_MM:g} mm)")
+    gaps = _face_gaps(meshes, face_clearance) if face_clearance > 0 else []
+    closed = [g for g in gaps if g[2] < 0.7 * face_clearance]
+    if closed:
+        g = min(closed, key=lambda x: x[2])
+        failures.append(f"pieces {g[0]} and {g[1]} face each other {g[2]:.3f} mm apart (median over their facing "
+                        f"vertices), expected the face clearance {face_clearance:g} mm")
+    tight = [g for g in gaps if g[3] < 0.5 * face_clearance]
+    if tight:
+        g = min(tight, key=lambda x: x[3])
+        warnings.append(f"pieces {g[0]} and {g[1]} come within {g[3]:.3f} mm of each other at one spot (face "
+                        f"clearance {face_clearance:g} mm; where a cut face meets the outside at a shallow angle)")
+    gap = min((g[3] for g in gaps), default=None)
+    median = min((g[2] for g in gaps), default=None)
+    pair = list(min(gaps, key=lambda x: x[3])[:2]) if gaps else []
+    pins = sum(((e.get("print") or {}).get("pins") or 0) for e in entries.values())
+    pins_up = sum(((e.get("print") or {}).get("pins_up") or 0) for e in entries.values())
+    return {"bed_contact_mm2": contact, "min_bed_contact_mm2": min(contact.values()) if contact else None,
+            "pieces_under_bed_minimum": under, "min_face_gap_mm": None if gap is None else round(gap, 4),
+            "face_gap_pair": pair,
+            "median_face_gap_mm": None if median is None else round(median, 4), "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
+            "failures": failures, "warnings": warnings}
+
+
+def _face_gaps(meshes, face_clearance):
+    """Neighbours (pieces whose boxes come within 3 face clearances) -> [(id, id, median gap, smallest gap) mm].
+    The median is over the first piece's vertices that have a vertex of the other within 3 clearances, each to the
+    nearest such vertex: both sides of a cut face share one triangulation, each set back by half the clearance, so
+    matching vertices sit one clearance apart, and 0 where the faces close. The smallest gap is the engine's, over
+    the whole surfaces."""
+    from scipy.spatial import cKDTree
+
+    ids = sorted(meshes)
+    reach = 3.0 * face_clearance
+    bounds = np.array([meshes[i].bounds for i in ids]) if ids else np.zeros((0, 2, 3))
+    out = []
+    for i in range(len(ids)):
+        for k in range(i + 1, len(ids)):
+            lo = np.maximum(bounds[i, 0], bounds[k, 0]) - reach
+            hi = np.minimum(bounds[i, 1], bounds[k, 1]) + reach
+            if np.any(hi < lo):
+                continue
+            va, vb = np.asarray(meshes[ids[i]].vertices), np.asarray(meshes[ids[k]].vertices)
+            dist, _ = cKDTree(vb).query(va, distance_upper_bound=reach)
+            dist = dist[np.isfinite(dist)]
+            if len(dist) < 8:
+                continue  # the pieces do not share a face
+            a, b = piece_solid(meshes[ids[i]], ids[i]), piece_solid(meshes[ids[k]], ids[k])
+            smallest = float(a.min_gap(b, reach)) if not (isinstance(a, str) or isinstance(b, str)) else float("nan")
+            out.append((ids[i], ids[k], float(np.median(dist)), smallest))
+    return out

@@ -99,6 +99,12 @@ def validate(spec, allow_large):
     summary = _run(run_validate, spec, allow_large=allow_large)
     click.echo(f"{spec}: valid — {summary['pieces']} pieces, {summary['joints']} joints, model "
                f"{summary['model']['volume_mm3']:.6g} mm^3, {summary['model']['handedness']}-handed")
+    if summary.get("fit"):
+        from .check import fit_line
+
+        click.echo(f"fit: {fit_line(summary['fit'])}")
+        for warning in summary["fit"]["warnings"]:
+            click.echo(f"warning: {warning}", err=True)
 
 
 @cli.command()
@@ -136,6 +142,8 @@ def check(directory):
 
     result = _run(check_directory, directory)
     click.echo(f"{directory}: all checks hold ({result.get('summary', '')})")
+    for warning in (result.get("printability") or {}).get("warnings", []):
+        click.echo(f"warning: {warning}", err=True)
 
 
 @cli.command()

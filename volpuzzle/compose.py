@@ -35,6 +35,7 @@ _MAX_EDGE_SAMPLES = 20000  # per grid edge; beyond this the tolerance is far bel
 _MAX_FACE_POINTS = 100000  # per grid face, on average
 _ROUNDS = 60
 _WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
+_FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
 _BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
 # A spawned worker costs ~2.5 s of CPU (imports, pickling) before it builds anything. This process keeps building
 # meanwhile (see _pooled), but on a busy machine the start-up takes 10 s of wall time, and the pieces handed to the
@@ -822,14 +823,126 @@ def cell_parameter_mesh(cell, sampling):
     return uvw, ids, tris, bits
 
 
-def cell_surface(cell, sampling, fmap, grid=None):
-    """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int)."""
-    keys = _cell_ids(cell, sampling)
+def _is_cut_face(own, sampling):
+    """A cell face (a, g) is a cut face, shared with a neighbour, when it is inside the grid or on a periodic seam."""
+    a, g = own
+    n = len(sampling.breaks[a]) - 1
+    return 0 < g[a] < n or any(s[0] == a for s in sampling.seams)
+
+
+def _setback(xyz, faces, slot, cut, half):
+    """Displacements (n, 3) that set every cut face back by `half` mm along its normal while the cell's outer faces
+    stay where they are. xyz (n, 3), faces (m, 3) outward, slot (m,) the cell face (0..5) of each triangle, cut (6,)
+    bool. Per point (points closer than _WELD_MM count as one: collapsed faces repeat a point under several ids), the
+    displacement d is the smallest with d . n_f = -half on each cut face f it lies on and d . n_f = 0 on each outer
+    face: a corner of two cut faces moves along both normals, a point where a cut face meets the outside slides
+    along the outside. Points inside one face near its edge then follow the edge's slide along the face, fading out
+    over _FADE half-clearances, so that none is overtaken by the moving edge (a fold)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    nv = len(xyz)
+    cluster = np.arange(nv)
+    pairs = cKDTree(xyz).query_pairs(_WELD_MM, output_type="ndarray")
+    if len(pairs):
+        graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
+        _, cluster = connected_components(graph, directed=False)
+    nc = int(cluster.max()) + 1
+    t = xyz[faces]
+    cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    normals = np.zeros((nc, 6, 3))
+    for k in range(3):
+        np.add.at(normals, (cluster[faces[:, k]], slot), cross)
+    size = np.linalg.norm(normals, axis=2)
+    on = size > 1e-12
+    unit = np.where(on[..., None], normals / np.maximum(size, 1e-300)[..., None], 0.0)
+    target = np.where(on & np.asarray(cut)[None, :], -float(half), 0.0)
+    moving = np.flatnonzero(np.any(target != 0.0, axis=1))
+    disp = np.zeros((nc, 3))
+    if not len(moving):
+        return disp[cluster]
+    # minimum-norm least squares, batched; nearly parallel constraints are dropped rather than amplified
+    pinv = np.linalg.pinv(unit[moving], rcond=0.05)
+    d = np.einsum("nij,nj->ni", pinv, target[moving])
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    disp[moving] = d * np.minimum(1.0, 4.0 * half / np.maximum(length, 1e-300))
+    # where: clusters on one face only; edges: triangle edges along a line where two faces meet
+    pos = np.zeros((nc, 3))
+    pos[cluster] = xyz
+    count = on.sum(axis=1)
+    e = cluster[np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])]
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    common = on[e[:, 0]] & on[e[:, 1]]
+    e, common = e[common.sum(axis=1) >= 2], common[common.sum(axis=1) >= 2]
+    single = np.flatnonzero(count == 1)
+    if not len(e) or not len(single):
+        return disp[cluster]
+    reach = _FADE * half
+    p0, p1 = pos[e[:, 0]], pos[e[:, 1]]
+    seg = p1 - p0
+    seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-300)
+    mid = 0.5 * (p0 + p1)
+    radius = 0.5 * float(np.sqrt(seg_len2.max())) + reach
+    near = cKDTree(mid).query_ball_point(pos[single], radius)
+    rows = np.repeat(single, [len(n) for n in near])
+    cols = np.fromiter((j for n in near for j in n), dtype=np.int64, count=len(rows))
+    face_of = np.argmax(on[rows], axis=1)
+    ok = common[cols, face_of]  # the edge bounds the point's own face
+    rows, cols, face_of = rows[ok], cols[ok], face_of[ok]
+    if not len(rows):
+        return disp[cluster]
+    lam = np.clip(np.einsum("ij,ij->i", pos[rows] - p0[cols], seg[cols]) / seg_len2[cols], 0.0, 1.0)
+    dist = np.linalg.norm(p0[cols] + lam[:, None] * seg[cols] - pos[rows], axis=1)
+    # the nearest edge of each point
+    order = np.lexsort((dist, rows))
+    rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
+    first = np.r_[True, rows[1:] != rows[:-1]]
+    rows, cols, face_of, lam, dist = rows[first], cols[first], face_of[first], lam[first], dist[first]
+    weight = np.clip(1.0 - dist / reach, 0.0, 1.0)
+    slide = (1.0 - lam)[:, None] * disp[e[cols, 0]] + lam[:, None] * disp[e[cols, 1]]
+    n = unit[rows, face_of]
+    slide -= np.einsum("ij,ij->i", slide, n)[:, None] * n  # only along the point's own face
+    disp[rows] += weight[:, None] * slide
+    return disp[cluster]
+
+
+def cell_surface(cell, sampling, fmap, grid=None, face_clearance=0.0):
+    """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int). With
+    face_clearance > 0 the cut faces are set back by half of it (the neighbour sets its side back by the other
+    half), the outer faces stay exact."""
+    lat = sampling.lattice
+    keys, slots, cut = [], [], np.zeros(6, bool)
+    for k, (key, reverse, _, own) in enumerate(lat.cell_faces(tuple(cell.index))):
+        fm = sampling.faces[key]
+        t = fm.ids[fm.tris]
+        keys.append(t[:, [0, 2, 1]] if reverse else t)
+        slots.append(np.full(len(t), k))
+        cut[k] = _is_cut_face(own, sampling)
+    keys = np.concatenate(keys)
     uniq, faces = np.unique(keys.ravel(), return_inverse=True)
     faces = faces.reshape(-1, 3)
     if fmap.orientation < 0:
         faces = faces[:, [0, 2, 1]]
-    return geometry.weld(sampling.xyz[uniq], faces, _WELD_MM)
+    xyz = sampling.xyz[uniq]
+    if face_clearance > 0 and cut.any():
+        xyz = xyz + _setback(xyz, faces, np.concatenate(slots), cut, 0.5 * face_clearance)
+    return geometry.weld(xyz, faces, _WELD_MM)
+
+
+def face_clearance_volume(sampling, face_clearance):
+    """mm^3 that a face clearance takes out of the puzzle: the clearance times the area of every cut face, each
+    shared face counted once (corners and edges add terms of order clearance^2 only)."""
+    if face_clearance <= 0:
+        return 0.0
+    area = 0.0
+    for key, fm in sampling.faces.items():
+        a, g = key[0], key[1:]
+        if not _is_cut_face((a, g), sampling):
+            continue
+        t = sampling.xyz[fm.ids[fm.tris]]
+        area += float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+    return face_clearance * area
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -1012,13 +1125,13 @@ def _refine(q, xyz, f, mask, evaluate, target):
     return q, xyz, f
 
 
-def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None):
-    """One cell -> Piece: its body through F, pins united and holes subtracted (in mm, or in the domain for
-    joints with space 'domain'); checked to be one closed solid with outward normals. (grid: unused, kept for
-    callers of the earlier signature.)"""
+def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None, face_clearance=0.0):
+    """One cell -> Piece: its body through F, cut faces set back by face_clearance / 2, pins united and holes
+    subtracted (in mm, or in the domain for joints with space 'domain'); checked to be one closed solid with outward
+    normals. (grid: unused, kept for callers of the earlier signature.)"""
     what = what or cell.id
     index = tuple(cell.index)
-    verts, faces = cell_surface(cell, sampling, fmap)
+    verts, faces = cell_surface(cell, sampling, fmap, face_clearance=face_clearance)
     body = geometry.manifold_from_mesh(verts, faces, what)
     body_volume = float(body.volume())
     pins, holes, dpins, dholes = _joint_solids(joints, index)
@@ -1041,8 +1154,8 @@ def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None):
 _WORKER = {}
 
 
-def _init_worker(tiling, sampling, fmap, joints):
-    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints)
+def _init_worker(tiling, sampling, fmap, joints, face_clearance=0.0):
+    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints, face_clearance=face_clearance)
 
 
 def _warm_worker():
@@ -1056,7 +1169,8 @@ def _warm_worker():
 def _build_in_worker(index):
     w = _WORKER
     t0 = time.perf_counter()
-    p = build_piece(w["tiling"].cell(index), w["tiling"], w["sampling"], w["fmap"], w["joints"])
+    p = build_piece(w["tiling"].cell(index), w["tiling"], w["sampling"], w["fmap"], w["joints"],
+                    face_clearance=w.get("face_clearance", 0.0))
     # plain arrays travel between processes more cheaply and predictably than trimesh objects
     return (p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume, p.body_volume,
             time.perf_counter() - t0)
@@ -1084,7 +1198,7 @@ def _use_pool(jobs, n, sampling, joints):
     return seconds >= _POOL_MIN_SECONDS
 
 
-def _pooled(order, jobs, tiling, sampling, fmap, joints, progress):
+def _pooled(order, jobs, tiling, sampling, fmap, joints, progress, face_clearance=0.0):
     """Pieces built by this process and jobs - 1 spawned workers together -> {cell index: record}. This process
     takes pieces from the front while the workers start (~2.5 s of imports that it would otherwise wait for) and
     then take pieces from the back, two queued each; a piece still queued when the front reaches it is built
@@ -1103,9 +1217,9 @@ def _pooled(order, jobs, tiling, sampling, fmap, joints, progress):
             progress(len(recs), n, recs[index][0])
 
     ctx = multiprocessing.get_context("spawn")
-    _init_worker(tiling, sampling, fmap, joints)
+    _init_worker(tiling, sampling, fmap, joints, face_clearance)
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1, mp_context=ctx, initializer=_init_worker,
-                                                  initargs=(tiling, sampling, fmap, joints))
+                                                  initargs=(tiling, sampling, fmap, joints, face_clearance))
     # Pieces go to the workers only once one has started: queued behind a worker's start-up they could keep this
     # process waiting at the end for as long as the start-up takes (10 s on a busy machine).
     started = pool.submit(_warm_worker)
@@ -1143,17 +1257,18 @@ def _pooled(order, jobs, tiling, sampling, fmap, joints, progress):
     return recs
 
 
-def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None):
+def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None, face_clearance=0.0):
     """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
     pool when the work is large enough to pay for one (same results as jobs=1); progress(i, n, piece_id) is called
-    as pieces finish. Pass `sampling` to reuse one from sample_parameters."""
+    as pieces finish. Pass `sampling` to reuse one from sample_parameters. face_clearance (mm): the gap left
+    between mating cut faces, half on each side."""
     sampling = sampling if sampling is not None else sample_parameters(tiling, fmap, tolerance)
     order = sorted(tiling.cells)
     n = len(order)
     joints = list(joints or [])
     recs = {}
     if not _use_pool(jobs, n, sampling, joints):
-        _init_worker(tiling, sampling, fmap, joints)
+        _init_worker(tiling, sampling, fmap, joints, face_clearance)
         try:
             for k, index in enumerate(order):
                 recs[index] = _build_in_worker(index)
@@ -1162,7 +1277,7 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
         finally:
             _WORKER.clear()
     else:
-        recs = _pooled(order, int(jobs), tiling, sampling, fmap, joints, progress)
+        recs = _pooled(order, int(jobs), tiling, sampling, fmap, joints, progress, face_clearance)
     out = Pieces(_piece_from(recs[index]) for index in order)
     out.sampling = sampling
     out.seconds = {recs[index][0]: recs[index][6] for index in order}

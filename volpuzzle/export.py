@@ -24,7 +24,8 @@ from .errors import ExportError, VolpuzzleError
 from .io.threemf import DEFAULT_ACCENT, write_3mf
 
 __all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md",
-           "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries"]
+           "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries",
+           "render_instructions_html", "assembly_sentences"]
 
 FORMATS = ("stl", "3mf")
 # Every folder volpuzzle writes holds this file; --force replaces only folders that do (a report.json alone proves
@@ -170,15 +171,26 @@ def render_report_md(report: dict) -> str:
     rnd = report.get("randomize") or {}
     if rnd.get("amplitude"):
         lines.append(f"| randomized | seed {rnd.get('seed')}, amplitude {rnd.get('amplitude')} |")
-    lines += ["", "## Pieces", "", "| piece | cell | file | volume (mm³) | size (mm) | triangles | plate |",
-              "|---|---|---|---:|---|---:|---:|"]
+    fit = report.get("fit") or {}
+    if fit:
+        from .check import fit_line
+
+        lines += ["", "## Fit", "", fit_line(fit) + "."]
+        lines += [f"- **Warning:** {w}" for w in fit.get("warnings") or []]
+    lines += ["", "## Pieces", "", "| piece | label | cell | file | volume (mm³) | size (mm) | triangles | plate | "
+              "on the bed (mm²) | base cut (mm) | pins up |",
+              "|---|---|---|---|---:|---|---:|---:|---:|---:|---:|"]
     for p in pieces:
         bbox = p.get("bbox_mm")
         size = " × ".join(f"{s:.1f}" for s in np.ptp(np.asarray(bbox, dtype=float), axis=0)) if bbox else "–"
         cell = "-".join(str(c) for c in p["cell"]) if p.get("cell") is not None else "–"
-        lines.append(f"| {p.get('id')} | {cell} | [{p.get('file')}]({p.get('file')}) | "
+        pr = p.get("print") or {}
+        up = f"{pr['pins_up']} of {pr['pins']}" if pr.get("pins") else "–"
+        lines.append(f"| {p.get('id')} | {_label_text(p)} | {cell} | [{p.get('file')}]({p.get('file')}) | "
                      f"{_fmt(p.get('volume_mm3'), 1)} | {size} | {p.get('triangles', '–')} | "
-                     f"{_fmt(p.get('plate'))} |")
+                     f"{_fmt(p.get('plate'))} | {_fmt(pr.get('bed_contact_mm2'), 1)} | "
+                     f"{_fmt(pr.get('base_cut_mm'), 1) if pr.get('base_cut_mm') else '–'} | {up} |")
+    lines += _printing_md(pieces, spec)
     dowels = report.get("dowels") or []
     if dowels:
         lines += ["", f"Loose dowels: {len(dowels)} (folder `dowels/`)."]
@@ -195,7 +207,15 @@ def render_report_md(report: dict) -> str:
                   f"Fragments merged into a neighbour: {len(mesh.get('merged', []))}. "
                   f"Cells that miss the mesh: {len(mesh.get('cells_without_piece', []))}."]
     assembly = report.get("assembly") or {}
-    if assembly.get("words"):
+    if assembly.get("steps"):
+        lines += ["", "## Assembly", "", "Each picture shows the pieces in place in grey and the block to add in "
+                  "colour, with an arrow along which it slides in. A printable page of the same steps: "
+                  "[instructions.html](instructions.html).", ""]
+        pictures = assembly.get("pictures") or []
+        for n, text in enumerate(assembly_sentences(report), start=1):
+            pic = pictures[n - 1] if n - 1 < len(pictures) else None
+            lines += [f"{n}. {text}" + (f"<br>![step {n}]({pic})" if pic else "")]
+    elif assembly.get("words"):
         lines += ["", "## Assembly", ""] + list(assembly["words"])
     if checks:
         verdict = "passed" if checks.get("passed") else "FAILED"
@@ -215,6 +235,11 @@ def render_report_md(report: dict) -> str:
             lines.append(f"| largest overlap | {_fmt(checks['max_overlap_mm3'], 4)} mm³{where} |")
         if checks.get("overlap_limit_mm3") is not None:
             lines.append(f"| overlap limit | {_fmt(checks['overlap_limit_mm3'], 4)} mm³ |")
+        if checks.get("face_clearance_mm") is not None:
+            lines.append(f"| face clearance | {_fmt(float(checks['face_clearance_mm']), 2)} mm, taking "
+                         f"{_fmt(checks.get('face_clearance_mm3'), 1)} mm³ |")
+        if checks.get("base_cuts_mm3"):
+            lines.append(f"| base cuts | {_fmt(checks['base_cuts_mm3'], 1)} mm³ |")
         for f in checks.get("failures") or []:
             lines.append(f"| failure | {f} |")
     timings = report.get("timings_s") or {}
@@ -223,6 +248,109 @@ def render_report_md(report: dict) -> str:
         for k, v in timings.items():
             lines.append(f"| {k} | {_fmt(v, 2)} |")
     return "\n".join(lines) + "\n"
+
+
+def _label_text(entry) -> str:
+    label = entry.get("label") or {}
+    return f"`{label['text']}`" if label.get("text") else "none"
+
+
+def _printing_md(pieces, spec) -> list:
+    """report.md's printing section: bed contact, pins up, labels, with what could not be done and why."""
+    if not pieces or not any(p.get("print") for p in pieces):
+        return []
+    from .check import BED_MIN_MM2
+
+    prints = [p.get("print") or {} for p in pieces]
+    contact = [x.get("bed_contact_mm2") for x in prints if x.get("bed_contact_mm2") is not None]
+    low = [p["id"] for p, x in zip(pieces, prints) if (x.get("bed_contact_mm2") or 0) < BED_MIN_MM2]
+    cuts = [p["id"] for p, x in zip(pieces, prints) if x.get("base_cut_mm")]
+    pins = sum(x.get("pins") or 0 for x in prints)
+    up = sum(x.get("pins_up") or 0 for x in prints)
+    out = ["", "## Printing", "",
+           f"Every piece lies on the plate as `plates/` shows, to be printed without supports. Bed contact: "
+           f"{min(contact):.1f} mm² at least, median {float(np.median(contact)):.1f} mm²; pieces under "
+           f"{BED_MIN_MM2:g} mm²: {', '.join(low) if low else 'none'}. Pieces given a flat base cut: "
+           f"{len(cuts)}. Pins within 30° of vertical: {up} of {pins}."]
+    labels_on = ((spec or {}).get("output") or {}).get("labels", True)
+    if labels_on:
+        missing = [(p["id"], (p.get("label") or {}).get("skipped") or "no site") for p in pieces
+                   if not (p.get("label") or {}).get("text")]
+        renamed = [(p["id"], p["label"]["text"]) for p in pieces
+                   if (p.get("label") or {}).get("text") and p["label"]["text"] != p["id"]]
+        if missing:
+            out += ["", "Pieces that could not be labelled:"] + [f"- {pid}: {why}" for pid, why in missing]
+        else:
+            out += ["", f"Every piece carries a label ({len(pieces)} of {len(pieces)})."]
+        mirrored = [p["id"] for p in pieces if (p.get("label") or {}).get("face") == "bed"]
+        if mirrored:
+            out += ["", "Labels engraved mirrored on the bed side (no inner face held them; they read from below): "
+                    + ", ".join(mirrored) + "."]
+        if renamed:
+            out += ["", "Labels shortened to the piece's number: "
+                    + ", ".join(f"`{t}` = {pid}" for pid, t in renamed) + "."]
+    return out
+
+
+def assembly_sentences(report: dict) -> list:
+    """One sentence per assembly step for people holding the pieces: which piece (by its label), onto what, which
+    pins go where; the picture gives the direction."""
+    pieces = report.get("pieces") or []
+    text = {p.get("id"): (p.get("label") or {}).get("text") for p in pieces}
+
+    def name(pid):
+        t = text.get(pid)
+        return f"**{pid}**" if not t or t == pid else f"**{pid}** (labelled `{t}`)"
+
+    def names(ids):
+        ids = list(ids)
+        if len(ids) > 4:
+            return f"the block of {len(ids)} pieces with {name(ids[0])}"
+        return " and ".join(name(i) for i in ids) if ids else "the rest"
+
+    out, started = [], False
+    for s in (report.get("assembly") or {}).get("steps") or []:
+        if s.get("kind") == "place":
+            out.append(f"Place {name(s.get('piece'))} on the table" + (" to start a new block." if started else "."))
+            started = True
+            continue
+        what = name(s["piece"]) if s.get("piece") else names(s.get("pieces") or [])
+        line = f"Slide {what} onto {names(s.get('onto') or [])} along the arrow"
+        pins = [f"the pin of {name(pin)} enters {name(hole)}" for pin, hole in s.get("joints") or []]
+        out.append(line + (", so that " + "; ".join(pins) if pins else "") + ".")
+    return out
+
+
+def render_instructions_html(report: dict) -> str:
+    """instructions.html: one printable page of assembly steps, a picture and a sentence each, with the fit."""
+    import html
+
+    spec = report.get("spec") or {}
+    title = html.escape(str(spec.get("name") or "puzzle"))
+    pieces = report.get("pieces") or []
+    pictures = (report.get("assembly") or {}).get("pictures") or []
+    fit = report.get("fit") or {}
+    parts = ["<!DOCTYPE html>", "<html lang=\"en\"><head><meta charset=\"utf-8\">",
+             f"<title>{title}: assembly</title>",
+             "<style>body{font-family:sans-serif;margin:1.5em;color:#111}"
+             "ol{display:flex;flex-wrap:wrap;gap:10px;padding:0;list-style:none;counter-reset:s}"
+             "li{width:240px;border:1px solid #bbb;padding:6px;break-inside:avoid;page-break-inside:avoid}"
+             "li img{width:100%}p.s{font-size:11px;margin:4px 0 0}"
+             "@media print{body{margin:0}li{width:30%}}</style></head><body>",
+             f"<h1>{title}: assembly</h1>",
+             f"<p>{len(pieces)} pieces. Grey: in place; colour: the block to add, along the arrow.</p>"]
+    if fit:
+        from .check import fit_line
+
+        parts.append(f"<p>Fit: {html.escape(fit_line(fit))}.</p>")
+    parts.append("<ol>")
+    for n, sentence in enumerate(assembly_sentences(report), start=1):
+        sentence = html.escape(sentence).replace("**", "")
+        sentence = sentence.replace("`", "")
+        img = f"<img src=\"{html.escape(pictures[n - 1])}\" alt=\"step {n}\">" if n - 1 < len(pictures) else ""
+        parts.append(f"<li>{img}<p class=\"s\"><b>{n}.</b> {sentence}</p></li>")
+    parts += ["</ol>", "</body></html>"]
+    return "\n".join(parts) + "\n"
 
 
 def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pins=None, tex=None) -> None:
@@ -508,6 +636,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
                                for k, v in timings.items()}
         report = clean_json(report)
         for name, text in (("report.json", dumps_report(report) + "\n"), ("report.md", render_report_md(report)),
+                           ("instructions.html", render_instructions_html(report)),
                            (MARKER, _marker_text())):  # the marker last: finished, no process owns it any more
             named(tmp / name, (tmp / name).write_text, text, "utf-8")
         _move_into_place(tmp, target)

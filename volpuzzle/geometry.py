@@ -130,3 +130,10 @@ def _row_keys(a, b):
     _, inv = np.unique(np.concatenate([a, b]), axis=0, return_inverse=True)
     inv = inv.ravel()
     return inv[:len(a)], inv[len(a):]
+
+
+def trim(m, normal, offset, what):
+    """The part of Manifold m on the side `normal` points to of the plane normal . x = offset, status checked."""
+    return _check(_check(m, what, "trimming by a plane (operand)").trim_by_plane(tuple(float(x) for x in normal),
+                                                                               float(offset)),
+                  what, "trimming by a plane")

@@ -29,6 +29,7 @@ from .errors import GeometryError
 
 DEPTH_MM = 0.4
 MIN_STROKE_MM = 0.8  # narrowest stem a 0.4 mm nozzle prints as two lines
+FINE_STROKE_MM = 0.6  # the fallback: one and a half lines, still a clean groove
 MAX_HEIGHT_MM = 8.0
 MARGIN_MM = 1.0  # text box to face edge
 JOINT_CLEAR_MM = 1.0  # text box to a joint's pin/hole surface
@@ -39,6 +40,7 @@ _FLAT_EM = 0.005  # largest distance between a glyph curve and its polygon, em (
 _SAMPLE_MM = 0.4  # spacing of surface samples under the text and of the face's boundary samples
 _REFINE_MM = (0.8, 4.0)  # shortest and longest edge target of the prism before it is bent onto the surface
 _SAG_MM = 0.05  # extra groove depth accepted where a coarser prism floor spares triangles
+_AVOID_COS = float(np.cos(np.radians(45.0)))
 _CENTRES = np.linspace(0.05, 0.95, 19)  # candidate centres, fractions across the face
 
 
@@ -163,17 +165,18 @@ def _ink(text):
     return box[1] - box[0]
 
 
-def min_height_mm(text):
-    """Smallest ink height (mm) of `text` whose stems are MIN_STROKE_MM wide."""
+def min_height_mm(text, stroke=MIN_STROKE_MM):
+    """Smallest ink height (mm) of `text` whose stems are `stroke` mm wide."""
     h = float(_ink(text)[1])
-    return MIN_STROKE_MM / _STEM_EM * h if h > 0 else float("inf")
+    return stroke / _STEM_EM * h if h > 0 else float("inf")
 
 
-def text_cross_section(text, height_mm):
+def text_cross_section(text, height_mm, stroke=MIN_STROKE_MM):
     """Filled outlines of `text` whose ink box is height_mm tall, centred at the origin (x along the baseline) ->
-    manifold3d.CrossSection, or None when the text is empty or so small that its strokes would not print."""
+    manifold3d.CrossSection, or None when the text is empty or so small that its strokes (at least `stroke` mm)
+    would not print."""
     loops, box = _outline(str(text))
-    if not loops or not height_mm >= min_height_mm(text) - 1e-9:
+    if not loops or not height_mm >= min_height_mm(text, stroke) - 1e-9:
         return None
     m3 = _m3()
     scale = float(height_mm) / float(box[1, 1] - box[0, 1])
@@ -234,6 +237,20 @@ def _face_joints(face, joints):
                 and bool(getattr(j, "across_seam", False)) == (face.seam is not None)):
             out.append(j)
     return out
+
+
+def site_on_joint_face(site, joints, cell_index):
+    """True when a joint of the cell opens on the face the label sits on: its axis within 45 degrees of the label's
+    normal and its centre within 2 mm of the label's tangent plane (whatever face pairing the joint was planned on,
+    e.g. after a mesh model moved it)."""
+    n = np.asarray(site.normal, float)
+    for j in joints or ():
+        if tuple(j.pin_cell) != tuple(cell_index) and tuple(j.hole_cell) != tuple(cell_index):
+            continue
+        d = np.asarray(j.direction, float)
+        if abs(float(d @ n)) > np.cos(np.radians(45.0)) and abs(float((np.asarray(j.center) - site.center) @ n)) < 2.0:
+            return True
+    return False
 
 
 def _joint_axes(cell_index, joints):
@@ -387,12 +404,12 @@ def _face_samples(cell, fmap, a, side):
     return faces[key]
 
 
-def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order):
+def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM):
     """Every (centre, direction) on one face -> list of (sort key, site arguments)."""
     b, c = _cyclic(a)
     ink_w, ink_h = _ink(text)
     aspect = ink_w / ink_h
-    hmin = min_height_mm(text)
+    hmin = min_height_mm(text, stroke)
     fb, fc, uvw, x0, jac, edge = _face_samples(cell, fmap, a, side)
     normals = _outward(jac, a, side, int(getattr(fmap, "orientation", 1) or 1))
     good = np.any(normals != 0, axis=1)
@@ -555,18 +572,17 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
                      ro[4], ro[5], ro[6], err)
 
 
-def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM):
-    """The best place for the cell's label (rule in the module docstring) -> LabelSite, or None when no inner face
-    holds `text` (default: the piece id) with MIN_STROKE_MM strokes: a single cell, or faces too small or too
-    crowded with joints."""
+def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM, tries=64, avoid=None):
+    """The places for the cell's label, best first (rule in the module docstring): LabelSites that hold `text`
+    (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured; none whose
+    normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate)."""
     text = str(text if text is not None else cell.id)
     if not _outline(text)[0]:
-        return None
+        return
     index = tuple(cell.index)
     axes_pts, axes_r = _joint_axes(index, joints)
     faces = [(order, face, side, bool(_face_joints(face, joints)))
              for order, (face, side) in enumerate(tiling.faces_of(index))]
-    tries = 64
     # Jointless faces rank first whatever the height, so the jointed ones are measured only when none of the
     # jointless candidates holds the text: the same order as sorting all of them at once.
     for has_joint in (False, True):
@@ -574,17 +590,25 @@ def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM):
         for order, face, side, hj in faces:
             if hj != has_joint:
                 continue
-            for key, args in _candidates(cell, fmap, face.axis, side, hj, axes_pts, axes_r, text, depth, order):
+            for key, args in _candidates(cell, fmap, face.axis, side, hj, axes_pts, axes_r, text, depth, order,
+                                         stroke):
                 cands.append((key, face.axis, side, hj, args))
+        if avoid is not None:
+            cands = [c for c in cands if float(np.dot(c[4][1], avoid)) <= _AVOID_COS]
         cands.sort(key=lambda c: c[0])
         for _, a, side, hj, args in cands[:tries]:
             site = _make_site(cell, fmap, a, side, hj, args, text)
             if site is not None:
-                return site
+                yield site
         tries -= min(tries, len(cands))
         if not tries:
             break
-    return None
+
+
+def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM):
+    """The best place for the cell's label -> LabelSite, or None when no inner face holds `text` (default: the
+    piece id) with `stroke` mm strokes: a single cell, or faces too small or too crowded with joints."""
+    return next(iter(label_sites(cell, tiling, fmap, joints, text, depth, stroke)), None)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -593,7 +617,13 @@ def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM):
 
 def _measured_heights(body, site):
     """Heights (ny, nx) of the body's own surface above the site's tangent plane (its printed surface, not F), by a
-    ray down the normal at every grid point; F's height where the ray finds nothing near it.
+    ray down the normal at every grid point; F's height where the ray finds nothing near it."""
+    return _measured(body, site)[0]
+
+
+def _measured(body, site):
+    """_measured_heights, and (ny, nx) bool: where the ray found the body's surface near F's (False where the face
+    of F lies off the body, as a cage's face outside a mesh model does).
 
     All rays are parallel, so in the site's frame each is a point of the plane: a triangle is hit where its shadow
     covers the point, at the height its plane has there. Each triangle is tested only against the grid points
@@ -640,10 +670,10 @@ def _measured_heights(body, site):
     np.maximum.at(first, (gj[inside], gi[inside]), z[inside])
     near = np.abs(first - h) < 0.5  # the first hit is this face, not some other part of the piece
     h[near] = first[near]
-    return h
+    return h, near
 
 
-def engrave(body, site, text=None, depth=DEPTH_MM, what=None):
+def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
     `depth` mm into it at `site` -> Manifold.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
@@ -651,10 +681,10 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None):
     m3 = _m3()
     text = str(text if text is not None else site.text)
     what = what or f"piece labelled {text}"
-    cs = text_cross_section(text, site.height_mm)
+    cs = text_cross_section(text, site.height_mm, stroke)
     if cs is None:
         raise GeometryError(f"{what}: label {text!r} at {site.height_mm:.2f} mm is too small to print "
-                            f"(expected at least {min_height_mm(text):.2f} mm)")
+                            f"(expected at least {min_height_mm(text, stroke):.2f} mm)")
     if body.status() != m3.Error.NoError:
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
@@ -715,9 +745,81 @@ def _longest_edge(solid):
     return float(max(np.linalg.norm(v[t[:, k]] - v[t[:, (k + 1) % 3]], axis=1).max() for k in range(3)))
 
 
-def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, what=None):
-    """choose_label_site then engrave -> (Manifold, LabelSite or None); the body unchanged when no face holds it."""
-    site = choose_label_site(cell, tiling, fmap, joints, text=text, depth=depth)
-    if site is None:
+def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, what=None, texts=None, avoid=None,
+                tries=6):
+    """Engrave the piece's id where it can be read -> (Manifold, LabelSite or None, note): the body unchanged and
+    a note saying why when no place holds it. Tried in turn: each text of `texts` (default: just `text`, the piece
+    id), first at MIN_STROKE_MM then FINE_STROKE_MM strokes, on the best `tries` sites; a site is passed over when
+    its face faces `avoid` (3,) (the bed), lies off the body (a cage's face outside a mesh) or the engraving fails."""
+    texts = list(texts) if texts else [str(text if text is not None else cell.id)]
+    reasons = []
+    for stroke in (MIN_STROKE_MM, FINE_STROKE_MM):
+        for t in texts:
+            for site in label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
+                                    avoid=avoid):
+                if tries <= 0:
+                    break
+                tries -= 1
+                if float(np.mean(_measured(body, site)[1])) < 0.98:
+                    reasons.append("off the piece")
+                    continue
+                try:
+                    out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke)
+                except GeometryError as e:
+                    reasons.append(str(e))
+                    continue
+                return out, site, None
+            tries = max(tries, 3)  # each fallback gets a few sites of its own
+    if not reasons:
+        return body, None, "no inner face large enough and clear of the joints"
+    return body, None, "no site held it: " + "; ".join(sorted(set(reasons))[:3])
+
+
+def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
+    """The last resort for a piece with no inner face that holds its id: the text engraved mirrored into the side
+    that rests on the bed, so it reads from below once printed. body: Manifold in assembled mm; rotation (4, 4) to
+    the print orientation (the bed below). -> (Manifold, report dict) or (body, None) when the bed side holds no text
+    MARGIN_MM inside its outline (holes included) with FINE_STROKE_MM strokes."""
+    from .geometry import boolean
+
+    m3 = _m3()
+    rot = np.asarray(rotation, float)
+    placed = body.transform(rot[:3, :])
+    lowest = float(placed.bounding_box()[2])
+    section = placed.slice(lowest + 0.05)
+    inner = section.offset(-MARGIN_MM, m3.JoinType.Round)
+    if inner.is_empty():
         return body, None
-    return engrave(body, site, text, depth=depth, what=what or cell.id), site
+    x0, y0, x1, y1 = inner.bounds()
+    full = float(inner.area())
+    for stroke in (MIN_STROKE_MM, FINE_STROKE_MM):
+        for height in (MAX_HEIGHT_MM, 6.0, 5.0, 4.0, 3.0, 2.5):
+            cs = text_cross_section(text, height, stroke)
+            if cs is None:
+                continue
+            cs = cs.mirror((1.0, 0.0))  # seen from below, through the bed
+            for turn in (0.0, 90.0):
+                glyphs = cs.rotate(turn)
+                gx0, gy0, gx1, gy1 = glyphs.bounds()
+                box = m3.CrossSection.square((gx1 - gx0, gy1 - gy0)).translate((gx0, gy0))
+                for fx in np.linspace(0.2, 0.8, 7):
+                    for fy in np.linspace(0.2, 0.8, 7):
+                        at = (x0 + fx * (x1 - x0), y0 + fy * (y1 - y0))
+                        moved = box.translate(at)
+                        if (moved - inner).area() > 1e-6 * full:
+                            continue
+                        # the groove from below the bed up to `depth` into the piece, back in assembled mm
+                        prism = m3.Manifold.extrude(glyphs.translate(at), depth + 0.5).translate(
+                            (0.0, 0.0, lowest - 0.5))
+                        groove = prism.transform(np.linalg.inv(rot)[:3, :])
+                        out = boolean(body, groove, "difference", what or f"piece labelled {text}")
+                        if out.is_empty() or len(out.decompose()) != len(body.decompose()):
+                            continue
+                        centre = np.linalg.inv(rot) @ np.array([at[0] + (gx0 + gx1) / 2, at[1] + (gy0 + gy1) / 2,
+                                                                lowest, 1.0])
+                        down = np.linalg.inv(rot)[:3, :3] @ np.array([0.0, 0.0, -1.0])
+                        return out, {"text": str(text), "face": "bed", "mirrored": True,
+                                     "height_mm": round(float(height), 3),
+                                     "center_mm": [round(float(x), 4) for x in centre[:3]],
+                                     "normal": [round(float(x), 6) for x in down], "on_joint_face": False}
+    return body, None

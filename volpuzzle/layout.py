@@ -1,7 +1,15 @@
-"""layout: print orientation of every piece and its place on build plates.
+"""layout: print orientation of every piece, a stable base for it, and its place on build plates.
 
-Packing is a guillotine packer of the pieces' footprint rectangles (_pack), one plate at a time; trimesh's
-roll_transform turns its boxes into transforms.
+Orientation: every candidate `down` (the largest convex-hull facets, the axes, and the directions that turn a pin up
+or a hole's opening up) is scored at once on plain arrays: a stable base first (a flat face, or a flat cut a few
+tenths of a mm deep, of at least MIN_BED_MM2), then no pin pointing into the bed and no hole opening onto it
+(support inside a blind hole cannot be removed), then the least overhang less the base, with a bonus for every pin
+within PIN_UP_DEG of vertical. A piece without a flat face that large gets a base cut (base_cut): the plane
+BASE_CUT_MM[i] above its lowest point that first gives it BASE_TARGET of bed contact.
+
+Packing is a guillotine packer of the pieces' footprint rectangles (_pack), one plate at a time, inside the plate
+less `margin` on every side; the packed group is then centred on the plate, and trimesh's roll_transform turns its
+boxes into transforms.
 """
 
 from dataclasses import dataclass
@@ -16,6 +24,13 @@ from .errors import SpecError
 # Faces within this angle of the plate count as resting on it; faces steeper than 45 degrees down overhang.
 FLAT_COS = np.cos(np.radians(3.0))
 OVERHANG_COS = np.cos(np.radians(45.0))
+MIN_BED_MM2 = 10.0  # less than this on the bed and the first layer has nothing to hold (the slicer refuses it)
+BASE_TARGET = (25.0, 0.08)  # a base cut aims at max(mm^2, share of the footprint) of bed contact
+BASE_CUT_MM = (0.2, 0.3, 0.4, 0.5, 0.6)  # base cut depths tried, shallowest first (a few layers at most)
+FIRST_SLICE_MM = 0.1  # a slicer cuts its first 0.2 mm layer here: what it finds is the piece's contact with the bed
+TALL_RATIO = 4.0  # height over the side of the base (the square root of its area) a piece stands up to
+PIN_UP_DEG = 30.0  # a pin within this angle of vertical prints round and strong, with no support
+PIN_UP_WEIGHT = 0.3  # a pin up is worth this share of the piece's surface area in overhang (lying, it prints oval)
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,6 +41,28 @@ class Placement:
     plate: int
     transform: np.ndarray
     footprint_mm2: float
+
+
+@dataclass(frozen=True, eq=False)
+class Pose:
+    """How one piece is printed. rotation (4, 4) from assembled mm to print orientation (resting on nothing yet);
+    down (3,) the assembled direction that faces the bed; base_cut_mm: depth of the flat cut made for its base (0
+    when it rests on a flat face); bed_contact_mm2 of the piece as printed (after the cut); pins, pins_up (within
+    PIN_UP_DEG of vertical), pins_down (into the bed) and holes_down (opening onto the bed)."""
+
+    rotation: np.ndarray
+    down: np.ndarray
+    base_cut_mm: float
+    bed_contact_mm2: float
+    pins: int
+    pins_up: int
+    pins_down: int
+    holes_down: int
+
+    def to_report(self):
+        return {"down": [round(float(x), 6) for x in self.down], "base_cut_mm": round(float(self.base_cut_mm), 3),
+                "bed_contact_mm2": round(float(self.bed_contact_mm2), 2), "pins": int(self.pins),
+                "pins_up": int(self.pins_up), "pins_down": int(self.pins_down), "holes_down": int(self.holes_down)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,10 +91,12 @@ def _candidate_downs(hull, count=24):
     return normals[order], areas[order]
 
 
-def _scores(mesh, downs, up_dirs):
-    """For every candidate `down` (k, 3) facing the plate: contact area on the plate (k,), overhanging area (k,),
-    pins pointing down (k,); and the piece's whole surface area. All candidates at once, on plain arrays: trimesh's
-    cached properties re-hash the mesh on every access."""
+def _scores(mesh, downs, up_dirs, open_dirs=()):
+    """For every candidate `down` (k, 3) facing the plate: contact area on the plate (k,), the bed area a base cut
+    of BASE_CUT_MM[-1] would give (k,, from the down-facing triangles within that depth of the lowest point),
+    overhanging area (k,), pins pointing down (k,), pins within PIN_UP_DEG of up (k,), holes opening down (k,); and
+    the piece's whole surface area. All candidates at once, on plain arrays: trimesh's cached properties re-hash the
+    mesh on every access."""
     vertices = mesh.vertices.view(np.ndarray)
     faces = mesh.faces.view(np.ndarray)
     cross = mesh.triangles_cross.view(np.ndarray)  # usually cached by the volume checks already
@@ -65,31 +104,58 @@ def _scores(mesh, downs, up_dirs):
     area = 0.5 * double
     scale = float(np.linalg.norm(np.ptp(vertices, axis=0)))
     h = vertices @ downs.T
-    near = h > h.max(axis=0) - 1e-3 * max(scale, 1.0)
+    low = h.max(axis=0)
+    near = h > low - 1e-3 * max(scale, 1.0)
     # cosines against unit normals, without dividing by each face's |cross|
     n_dot = cross @ downs.T
     on_plate = (n_dot > FLAT_COS * double[:, None]) & near[faces[:, 0]] & near[faces[:, 1]] & near[faces[:, 2]]
     contact = area @ on_plate
+    in_cut = h > low - BASE_CUT_MM[-1]
+    cut = in_cut[faces[:, 0]] & in_cut[faces[:, 1]] & in_cut[faces[:, 2]] & (n_dot > 0)
+    base = 0.5 * np.where(cut, n_dot, 0.0).sum(axis=0)  # the cut's flat is the shadow of what it removes
     overhang = area @ ((n_dot > OVERHANG_COS * double[:, None]) & ~on_plate)
     up_dirs = np.reshape(np.asarray(up_dirs, float), (-1, 3))
-    pins_down = (downs @ up_dirs.T > 0.5).sum(axis=1)
-    return contact, overhang, pins_down, float(area.sum())
+    open_dirs = np.reshape(np.asarray(open_dirs, float), (-1, 3))
+    pin_dot = downs @ up_dirs.T
+    pins_down = (pin_dot > 0.5).sum(axis=1)
+    pins_up = (pin_dot < -np.cos(np.radians(PIN_UP_DEG))).sum(axis=1)
+    holes_down = (downs @ open_dirs.T > 0.5).sum(axis=1)
+    return (contact, np.maximum(base, contact), overhang, pins_down, pins_up, holes_down, float(area.sum()),
+            low - h.min(axis=0))
 
 
-def _orient(mesh, pin_directions=()):
-    """print_orientation's rotation, and the piece's convex-hull vertices (all its extreme points)."""
+def _choose(mesh, pin_directions=(), hole_openings=()):
+    """The best candidate -> (down (3,), flat contact mm^2, estimated base mm^2, pins_down, pins_up, holes_down) and
+    the piece's convex hull."""
     hull = mesh.convex_hull
     downs, _ = _candidate_downs(hull)
-    downs = np.concatenate([downs, np.vstack([np.eye(3), -np.eye(3)])])
-    contact, overhang, pins_down, total_area = _scores(mesh, downs, pin_directions)
-    best_contact = contact.max()
+    extra = [np.eye(3), -np.eye(3)]
+    # a pin straight up, or a hole opening straight up, is a candidate of its own
+    for d in list(pin_directions) + list(hole_openings):
+        d = np.asarray(d, float)
+        extra.append(-d[None] / max(np.linalg.norm(d), 1e-12))
+    downs = np.concatenate([downs] + extra)
+    contact, base, overhang, pins_down, pins_up, holes_down, total, height = _scores(mesh, downs, pin_directions,
+                                                                                     hole_openings)
     index = np.arange(len(downs))
-    # A face is "large" when it carries a real share of the piece's footprint; else the piece has no flat side.
-    if best_contact > 0.02 * total_area:
-        best = np.lexsort((index, overhang - contact, contact < 0.8 * best_contact, pins_down))[0]
+    # a tall piece on a small base topples or wobbles: the base's side should be at least a quarter of the height
+    unstable = base < np.maximum(2 * MIN_BED_MM2, (height / TALL_RATIO) ** 2)
+    cost = (overhang - base) / max(total, 1e-12) - PIN_UP_WEIGHT * pins_up
+    # a flat face within a few per cent of the best is as good as it: ties go to the candidate listed first
+    cost = np.round(cost / 0.02)
+    best = np.lexsort((index, cost, pins_down + holes_down, unstable))[0]
+    return (downs[best], contact[best], base[best], int(pins_down[best]), int(pins_up[best]),
+            int(holes_down[best])), hull
+
+
+def _orient(mesh, pin_directions=(), hole_openings=(), down=None):
+    """print_orientation's rotation, and the piece's convex-hull vertices (all its extreme points). down: the
+    assembled direction to put on the bed, when already chosen."""
+    if down is None:
+        (down, *_), hull = _choose(mesh, pin_directions, hole_openings)
     else:
-        best = np.lexsort((index, overhang, pins_down))[0]
-    rot = trimesh.geometry.align_vectors(downs[best], [0.0, 0.0, -1.0])
+        hull = mesh.convex_hull
+    rot = trimesh.geometry.align_vectors(np.asarray(down, float), [0.0, 0.0, -1.0])
     # Then turn about z so that the footprint's bounding rectangle is smallest.
     hull_points = hull.vertices.view(np.ndarray)
     pts = hull_points @ rot[:3, :3].T
@@ -101,10 +167,76 @@ def _orient(mesh, pin_directions=()):
     return spin @ rot, hull_points
 
 
-def print_orientation(mesh, pin_directions=()):
-    """(4, 4) rotation that puts a large flat face down when the piece has one, else the least overhang; pins pointing
-    up are preferred. Deterministic for the same mesh."""
-    return _orient(mesh, pin_directions)[0]
+def print_orientation(mesh, pin_directions=(), hole_openings=()):
+    """(4, 4) rotation that gives the piece a stable base (a large flat face down when it has one), no pin pointing
+    into the bed nor hole opening onto it, the least overhang and pins up. Deterministic for the same mesh."""
+    return _orient(mesh, pin_directions, hole_openings)[0]
+
+
+def bed_contact(vertices, faces, transform=None):
+    """mm^2 of the mesh on the bed after `transform` (4, 4): its section FIRST_SLICE_MM above its lowest point, where
+    the slicer cuts the first layer."""
+    from .geometry import manifold_from_mesh
+
+    v = np.asarray(vertices, float)
+    if transform is not None:
+        v = v @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
+    solid = manifold_from_mesh(v, faces, "piece on the bed", keep_faces=False)
+    return float(solid.slice(float(v[:, 2].min()) + FIRST_SLICE_MM).area())
+
+
+def plan_pose(mesh, pin_directions=(), hole_openings=()):
+    """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it)."""
+    from .geometry import from_trimesh
+
+    (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
+    rot, hull_points = _orient(mesh, down=down)
+    footprint = _hull_area(trimesh.transform_points(hull_points, rot)[:, :2])
+    target = max(BASE_TARGET[0], BASE_TARGET[1] * footprint)
+    solid = from_trimesh(mesh, "piece").transform(rot[:3, :])
+    lowest = float(solid.bounding_box()[2])
+    depth, area = 0.0, float(solid.slice(lowest + FIRST_SLICE_MM).area())
+    if area < target:
+        for d in BASE_CUT_MM:
+            a = float(solid.slice(lowest + d + FIRST_SLICE_MM).area())  # a cut's flat and the first layer above it
+            if a > area:
+                depth, area = d, a
+            if a >= target:
+                break
+    return Pose(rot, np.asarray(down, float), depth, area, len(pin_directions), pins_up, pins_down, holes_down)
+
+
+def base_cut(mesh, pose, what="piece"):
+    """The piece (Trimesh, assembled mm) with the flat its pose asks for cut off its bed side -> (Trimesh, mm^3
+    removed). Unchanged when the pose needs no cut."""
+    if pose.base_cut_mm <= 0:
+        return mesh, 0.0
+    from .geometry import check_solid, from_trimesh, to_trimesh, trim
+
+    solid = from_trimesh(mesh, what)
+    down = np.asarray(pose.down, float)
+    lowest = float((np.asarray(mesh.vertices) @ down).max())
+    kept = trim(solid, -down, pose.base_cut_mm - lowest, f"{what} (base cut)")
+    out = check_solid(to_trimesh(kept), f"{what} (base cut)")
+    return out, float(solid.volume()) - float(kept.volume())
+
+
+def joint_directions(joints):
+    """{piece id: [(3,) pin directions]} and {piece id: [(3,) directions its holes open towards]}: a pin leaves its
+    piece along the joint's direction, the hole it enters opens back against it; a dowel's two holes open towards
+    each other."""
+    from .joint import piece_id
+
+    pins, openings = {}, {}
+    for j in joints or ():
+        d = np.asarray(j.direction, float)
+        if j.style == "pin":
+            pins.setdefault(piece_id(j.pin_cell), []).append(d)
+        elif j.style == "dowel":
+            openings.setdefault(piece_id(j.pin_cell), []).append(d)
+        if j.style in ("pin", "dowel"):
+            openings.setdefault(piece_id(j.hole_cell), []).append(-d)
+    return pins, openings
 
 
 def _resting(points, rot):
@@ -117,45 +249,66 @@ def _resting(points, rot):
     return move @ rot, hi[:2] - lo[:2]
 
 
-def layout(parts, plate, spacing, pin_directions=None):
-    """Pack parts onto as few plates as fit. parts: list of (name, Trimesh) in assembled mm; plate (w, d) mm;
-    pin_directions: {name: [(3,) unit vectors of its pins]}. -> (list of Placement, list of Plate)."""
+def layout(parts, plate, spacing, pin_directions=None, margin=0.0, poses=None, hole_openings=None):
+    """Pack parts onto as few plates as fit, `margin` mm clear of the plate's edges and the packed group centred on
+    the plate. parts: list of (name, Trimesh) in assembled mm; plate (w, d) mm; pin_directions, hole_openings:
+    {name: [(3,) unit vectors of its pins, of its holes' openings]}; poses: {name: Pose} already planned (their
+    rotation is kept). -> (list of Placement, list of Plate)."""
     pin_directions = pin_directions or {}
+    hole_openings = hole_openings or {}
+    poses = poses or {}
     plate = np.asarray(plate, float)
+    inner = plate - 2.0 * float(margin)
     oriented, extents, areas = [], [], []
     for name, mesh in parts:
-        rot, hull_points = _orient(mesh, pin_directions.get(name, ()))
+        pose = poses.get(name)
+        down = None if pose is None else pose.down
+        rot, hull_points = _orient(mesh, pin_directions.get(name, ()), hole_openings.get(name, ()), down=down)
         place, ext = _resting(hull_points, rot)
         oriented.append(place)
         extents.append(ext)
         hull2d = trimesh.transform_points(hull_points, place)[:, :2]
         areas.append(_hull_area(hull2d))
     extents = np.array(extents)
-    fits = np.all(np.sort(extents, axis=1)[:, ::-1] <= np.sort(plate)[::-1] + 1e-9, axis=1)
+    fits = np.all(np.sort(extents, axis=1)[:, ::-1] <= np.sort(inner)[::-1] + 1e-9, axis=1)
     if not fits.all():
-        need = np.sort(extents[~fits], axis=1)[:, ::-1].max(axis=0)
+        need = np.sort(extents[~fits], axis=1)[:, ::-1].max(axis=0) + 2.0 * float(margin)
         raise SpecError(f"output.plate: piece {parts[int(np.argmin(fits))][0]} does not fit on the plate "
-                        f"(got {plate.tolist()}, expected at least [{need[0]:.1f}, {need[1]:.1f}] mm)")
+                        f"with output.margin {float(margin):g} mm (got {plate.tolist()}, expected at least "
+                        f"[{need[0]:.1f}, {need[1]:.1f}] mm)")
     placements, plates = [None] * len(parts), []
     remaining = list(range(len(parts)))
     while remaining:
-        bounds, inserted = _pack(extents[remaining], plate, spacing)
+        bounds, inserted = _pack(extents[remaining], inner, spacing)
         if not np.any(inserted):
             inserted = np.zeros(len(remaining), bool)
             inserted[0] = True
             bounds = np.array([[[0, 0], extents[remaining[0]]]]) + spacing / 2.0
         chosen = [remaining[i] for i in np.flatnonzero(inserted)]
         moves = packing.roll_transform(bounds, extents[chosen])
+        # the boxes' real extents on the plate, then the shift that centres the group on the plate
+        placed = [trimesh.transform_points(np.array([[0, 0, 0], [*extents[i], 0]], float) - [*extents[i] / 2, 0],
+                                           _move2(m2)) for i, m2 in zip(chosen, moves)]
+        lo = np.min([p.min(axis=0)[:2] for p in placed], axis=0)
+        hi = np.max([p.max(axis=0)[:2] for p in placed], axis=0)
+        shift = (plate - (hi - lo)) / 2.0 - lo
         index = len(plates) + 1
         for i, m2 in zip(chosen, moves):
-            m3 = np.eye(4)
-            m3[:2, :2] = m2[:2, :2]
-            m3[:2, 3] = m2[:2, 2]
+            m3 = _move2(m2)
+            m3[:2, 3] += shift
             placements[i] = Placement(parts[i][0], index, m3 @ oriented[i], areas[i])
         fill = sum(areas[i] for i in chosen) / float(np.prod(plate))
         plates.append(Plate(index, tuple(parts[i][0] for i in chosen), round(fill, 4)))
         remaining = [r for j, r in enumerate(remaining) if not inserted[j]]
     return placements, plates
+
+
+def _move2(m2):
+    """The packer's (3, 3) planar transform as a (4, 4) one."""
+    m3 = np.eye(4)
+    m3[:2, :2] = m2[:2, :2]
+    m3[:2, 3] = m2[:2, 2]
+    return m3
 
 
 def _pack(extents, plate, spacing):

@@ -258,15 +258,15 @@ def _check_plate(spec, tiling, fmap):
         else:
             q = p - p.mean(axis=0)
             ext = np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2].T, axis=0)
-        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing
+        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing + 2 * spec.output.margin
 
     if all(np.all(footprint(p, False) <= plate + 1e-9) for p in pts):
         return
     need = np.max([footprint(p, True) for p in pts], axis=0)
     if np.any(need > plate + 1e-9):
-        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with spacing "
-                        f"(got {list(spec.output.plate)}, expected at least [{np.ceil(need[0]):.0f}, "
-                        f"{np.ceil(need[1]):.0f}])", source=spec.source)
+        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with "
+                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least "
+                        f"[{np.ceil(need[0]):.0f}, {np.ceil(need[1]):.0f}])", source=spec.source)
 
 
 def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None,
@@ -290,29 +290,58 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     tolerance = spec.output.tolerance
     mesh_report = None
 
+    state = {}
+
     def finish(pieces, joints, expected):
-        """Labels, the float32 form the files store, and the build's own checks on exactly that."""
-        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress)
+        """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the
+        build's own checks on exactly that."""
+        with timer("layout", progress):
+            poses = _poses(pieces, joints)
+        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress, poses)
+        with timer("layout", progress):
+            pieces, cut = _base_cuts(pieces, poses)
+        if spec.output.labels:
+            with timer("label", progress):
+                pieces, more = _bed_labels(pieces, labels, poses)
+            engraved += more
         with timer("check", progress):
             pieces = _printable(pieces)
-            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved)
+            checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut)
+        checks["base_cuts_mm3"] = round(cut, 3)
+        state["poses"] = poses
         return pieces, labels, engraved, checks
 
+    clearance = spec.output.face_clearance
+    if clearance > 0 and joints and spec.joints.space == "domain":
+        # pins built in the domain are cut on the cell's own parameter box, whose faces are not set back
+        print(f"warning: output.face_clearance: not applied with joints.space: domain (got {clearance:g} mm, the "
+              f"cut faces meet)", file=sys.stderr)
+        clearance = 0.0
     if stages["model"].mesh is not None:
+        if clearance > 0:
+            # Fragments of a cage cell are merged into the neighbour they touch and joints are kept inside two
+            # touching cells: both need the cut faces closed, so the clearance would have to come after them.
+            print(f"warning: output.face_clearance: not applied to a mesh model yet (got {clearance:g} mm, the cut "
+                  f"faces meet)", file=sys.stderr)
+            clearance = 0.0
         from .meshcut import compose_in_mesh
 
         pieces, joints, stages["plan"], mesh_report = compose_in_mesh(stages, spec.joints, tolerance, jobs, timer,
                                                                       progress)
         gaps = sum(joint_gap_volume(j) for j in joints)
-        expected = stages["model_report"]["volume_mm3"] - gaps
+        face_gaps = 0.0
+        expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
     else:
+        from .compose import face_clearance_volume
+
         gaps = sum(joint_gap_volume(j) for j in joints)
-        expected = stages["model_report"]["volume_mm3"] - gaps
         for attempt in range(3):
             with timer("compose", progress):
                 pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs,
-                                 progress=progress.piece)
+                                 progress=progress.piece, face_clearance=clearance)
+            face_gaps = face_clearance_volume(pieces.sampling, clearance)
+            expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
             pieces, labels, engraved, checks = finish(pieces, joints, expected)
             deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                             and checks["volume_error"] < -0.005)
@@ -323,12 +352,16 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
     _require_joined(spec, pieces, joints, stages.get("contacts") or ())
     checks["joint_gaps_mm3"] = round(gaps, 3)
+    checks["face_clearance_mm"] = clearance
+    checks["face_clearance_mm3"] = round(face_gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
     sampling = getattr(pieces, "sampling", None)
     if sampling is not None:
         checks["max_surface_error_mm"] = round(float(sampling.max_error_mm), 6)
     assert_passed(checks)
+    for warning in _fit(spec, joints, clearance)["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
     dowels = []
     if spec.joints.style == "dowel":
         from .geometry import to_trimesh
@@ -341,16 +374,19 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     pins = pin_triangles(pieces, joints)
     texture, texture_report = _texture(spec, stages, pieces, tolerance, timer, progress)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, texture)
+        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, texture,
+                                             state["poses"], assembly.get("steps"))
     ext = spec.output.format
-    plate_of = {pl.name: pl.plate for pl in placements}
+    place_of = {pl.name: pl for pl in placements}
     entries = []
     for p in pieces:
         entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
-        entry["plate"] = plate_of.get(p.id)
+        entry["plate"] = place_of[p.id].plate if p.id in place_of else None
         entry["label"] = labels.get(p.id)
         entry["joints"] = piece_joints_report(joints, p.cell)
+        entry["print"] = _print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
         entries.append(entry)
+    pictures = [f"steps/step-{n:02d}.png" for n in range(1, len(assembly["steps"]) + 1)]
     report = {
         "volpuzzle_version": __version__,
         "spec": spec_to_dict(spec),
@@ -360,9 +396,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         "joints": [j.to_report() for j in joints],
         "contacts": stages.get("contacts"),
         "checks": checks,
+        "fit": _fit(spec, joints, clearance),
         "plates": [{"file": pl.file, "pieces": list(pl.names), "fill_ratio": pl.fill_ratio} for pl in plates],
         "assembly_order": assembly.pop("assembly_order"),
-        "assembly": assembly,
+        "assembly": dict(assembly, pictures=pictures),
         "timings_s": timer.timings,
     }
     if mesh_report is not None:
@@ -410,6 +447,73 @@ def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False)
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
+def _poses(pieces, joints):
+    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts."""
+    from .layout import joint_directions, plan_pose
+
+    pins, openings = joint_directions(joints)
+    return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
+
+
+def _bed_labels(pieces, labels, poses):
+    """Pieces left without a label get it mirrored on their bed side (after the base cut, which would take it off).
+    Updates labels in place. -> (pieces, mm^3 removed)"""
+    import dataclasses
+
+    from .geometry import from_trimesh, to_trimesh
+    from .label import engrave_bed
+
+    out, removed = [], 0.0
+    for k, p in enumerate(pieces):
+        entry = labels.get(p.id)
+        pose = poses.get(p.id)
+        if (entry or {}).get("text") or pose is None:
+            out.append(p)
+            continue
+        body = from_trimesh(p.mesh, p.id)
+        for text in (p.id, str(k + 1)):
+            new, site = engrave_bed(body, pose.rotation, text, what=p.id)
+            if site is not None:
+                volume = float(new.volume())
+                mesh = to_trimesh(new)
+                removed += p.volume - volume
+                p = dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces)))
+                labels[p.id] = site
+                break
+        out.append(p)
+    return _like(pieces, out), removed
+
+
+def _base_cuts(pieces, poses):
+    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all)."""
+    import dataclasses
+
+    from .layout import base_cut
+
+    out, removed = [], 0.0
+    for p in pieces:
+        pose = poses.get(p.id)
+        if pose is None or pose.base_cut_mm <= 0:
+            out.append(p)
+            continue
+        mesh, v = base_cut(p.mesh, pose, p.id)
+        removed += v
+        out.append(dataclasses.replace(p, mesh=mesh, volume=p.volume - v, triangles=int(len(mesh.faces))))
+    return _like(pieces, out), removed
+
+
+def _print_entry(piece, pose, placement):
+    """report.json "print" of a piece: its pose, the (4, 4) transform to its plate, its bed contact there."""
+    from .layout import bed_contact
+
+    if pose is None or placement is None:
+        return None
+    entry = pose.to_report()
+    entry["plate_transform"] = np.round(placement.transform, 6).tolist()
+    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
+    return entry
+
+
 def _like(pieces, out):
     """`out` as the same kind of list as `pieces` (compose's Pieces carries .sampling and .seconds)."""
     if not hasattr(pieces, "sampling"):
@@ -448,32 +552,41 @@ def _printable(pieces):
     return out
 
 
-def _label(spec, stages, pieces, joints, timer, progress):
-    """Engrave each piece's id on an inner face no joint uses. -> (pieces, {id: label report or None}, mm^3 removed)"""
+def _label(spec, stages, pieces, joints, timer, progress, poses=None):
+    """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
+    None}, mm^3 removed)"""
     import dataclasses
 
     from .geometry import from_trimesh, to_trimesh
-    from .label import label_piece
+    from .label import label_piece, site_on_joint_face
 
     if not spec.output.labels:
         return pieces, {}, 0.0
     tiling, fmap = stages["tiling"], stages["fmap"]
 
-    def one(p):
+    poses = poses or {}
+
+    def one(k, p):
+        pose = poses.get(p.id)
+        # the piece id, else its number in the piece list (report.md gives the key)
+        texts = (p.id, str(k + 1))
         try:
-            body, site = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints, what=p.id)
+            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+                                           what=p.id, texts=texts, avoid=None if pose is None else pose.down)
         except GeometryError as e:
             # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
             return p, {"skipped": str(e)}, 0.0
         if site is None:
-            return p, None, 0.0
+            return p, {"skipped": note}, 0.0
         mesh = to_trimesh(body)
         volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
+        entry = site.to_report()
+        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, joints, p.cell))
         return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
-                site.to_report(), p.volume - volume)
+                entry, p.volume - volume)
 
     with timer("label", progress):
-        results = [one(p) for p in pieces]
+        results = [one(k, p) for k, p in enumerate(pieces)]
     out = [r[0] for r in results]
     sites = {p.id: r[1] for p, r in zip(pieces, results)}
     removed = sum(r[2] for r in results)
@@ -519,21 +632,17 @@ def _texture(spec, stages, pieces, tolerance, timer, progress):
     return colors, report
 
 
-def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None):
+def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
-    from .joint import piece_id
-    from .layout import layout
-    from .preview import render_preview
+    from .layout import joint_directions, layout
+    from .preview import plan_offsets, render_preview
 
-    pin_dirs = {}
-    for j in joints:
-        if j.style == "pin":
-            pid = piece_id(j.pin_cell)
-            pin_dirs.setdefault(pid, []).append(np.asarray(j.direction))
+    pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
     rgb = {p.id: c for p, c in zip(pieces, colors)}
-    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs)
+    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
+                                poses=poses, hole_openings=openings)
     meshes = dict(parts)
     extras = {}
     for pl in plates:
@@ -548,12 +657,34 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None):
             write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
                       colors=None if texture is None else [texture.get(o[0]) for o in objs])
         extras[pl.file] = write_plate
-    shown = colors
     if texture is not None:
         from .texture import face_colors
 
-        shown = [face_colors(c, texture[p.id]) for p, c in zip(pieces, colors)]
-    extras["preview.png"] = lambda path: render_preview(path, [p.mesh for p in pieces], shown, title=spec.name)
+    def write_preview(path):
+        # pins a shade darker than their piece, so that they stand out
+        shaded = []
+        for p, c in zip(pieces, colors):
+            flag = (pins or {}).get(p.id)
+            if texture is None and flag is None:
+                shaded.append(np.asarray(c, np.uint8))
+                continue
+            tri = (np.array(face_colors(c, texture[p.id]), np.uint8) if texture is not None
+                   else np.tile(np.asarray(c, np.uint8), (len(p.mesh.faces), 1)))
+            if flag is not None:
+                tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
+            shaded.append(tri)
+        index = {p.id: k for k, p in enumerate(pieces)}
+        on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
+        offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
+        render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
+                       plate=(on_plate, tuple(spec.output.plate)))
+
+    extras["preview.png"] = write_preview
+    if steps:
+        from .preview import render_steps
+
+        extras["steps"] = lambda path: render_steps(path, [p.mesh for p in pieces], [p.id for p in pieces],
+                                                    colors, steps)
     return placements, plates, extras
 
 
@@ -564,5 +695,20 @@ def validate(spec_path, allow_large=False):
     spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     stages = prepare(spec)
     _check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
+    clearance = 0.0 if stages["model"].mesh is not None else spec.output.face_clearance  # see build
     return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(stages["joints"]),
-            "model": stages["model_report"], "randomize": stages["randomize_report"]}
+            "model": stages["model_report"], "randomize": stages["randomize_report"],
+            "fit": _fit(spec, stages["joints"], clearance)}
+
+
+def _fit(spec, joints, face_clearance):
+    """Pin size and fit of the planned joints (the thinnest and shortest, when the joint stage sized them per
+    face) and the face clearance applied, with warnings below the printable minimum (check.pin_fit)."""
+    from .check import pin_fit
+
+    j = spec.joints
+    if not joints:
+        return pin_fit("none", 0.0, 0.0, j.clearance, j.axial_clearance, face_clearance)
+    return pin_fit(j.style, min(float(x.radius) for x in joints), min(float(x.length) for x in joints),
+                   max(float(x.clearance) for x in joints), max(float(x.axial_clearance) for x in joints),
+                   face_clearance)

@@ -61,7 +61,7 @@ _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
 _JOINT_KEYS = ("style", "shape", "radius", "length", "clearance", "axial_clearance", "space", "min_radius",
                "min_length", "allow")
-_OUTPUT_KEYS = ("directory", "format", "tolerance", "plate", "spacing", "labels")
+_OUTPUT_KEYS = ("directory", "format", "tolerance", "plate", "spacing", "labels", "margin", "face_clearance")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -144,6 +144,8 @@ class OutputSpec:
     plate: tuple[float, float] = (250.0, 210.0)
     spacing: float = 4.0
     labels: bool = True
+    margin: float = 10.0  # bed edge to the nearest piece, mm: room for the slicer's skirt
+    face_clearance: float = 0.15  # gap between mating cut faces, mm; each face is set back by half of it
 
 
 @dataclass(frozen=True)
@@ -696,6 +698,13 @@ class _Checker:
         tol = self.number("output.tolerance", o.get("tolerance", d.tolerance), above=0)
         spacing = self.number("output.spacing", o.get("spacing", d.spacing), at_least=0)
         labels = self.boolean("output.labels", o.get("labels", d.labels))
+        margin = self.number("output.margin", o.get("margin", d.margin), at_least=0)
+        face_clearance = self.number("output.face_clearance", o.get("face_clearance", d.face_clearance),
+                                     at_least=0)
+        if face_clearance is not None and face_clearance > 1.0:
+            self.bad("output.face_clearance", "would leave the pieces loose", _show(o.get("face_clearance")),
+                     "a gap in mm from 0 to 1 (0.1 to 0.2 suits a 0.4 mm nozzle)")
+            face_clearance = None
         plate = d.plate
         raw_plate = o.get("plate", list(d.plate))
         if not isinstance(raw_plate, list) or len(raw_plate) != 2:
@@ -707,9 +716,14 @@ class _Checker:
                 if spacing is not None and 2 * spacing >= min(plate):
                     self.bad("output.spacing", "leaves no room on the plate", _show(o.get("spacing", d.spacing)),
                              f"less than half the plate's smaller side, < {_num(min(plate) / 2)}")
+                if margin is not None and 2 * margin >= min(plate):
+                    self.bad("output.margin", "leaves no room on the plate", _show(o.get("margin", d.margin)),
+                             f"less than half the plate's smaller side, < {_num(min(plate) / 2)}")
         return OutputSpec(directory=directory, format=fmt or d.format, tolerance=tol or d.tolerance, plate=plate,
                           spacing=d.spacing if spacing is None else spacing,
-                          labels=d.labels if labels is None else labels)
+                          labels=d.labels if labels is None else labels,
+                          margin=d.margin if margin is None else margin,
+                          face_clearance=d.face_clearance if face_clearance is None else face_clearance)
 
 
     def limits(self, value):
@@ -928,7 +942,8 @@ def spec_to_dict(spec: Spec) -> dict:
                    "clearance": j.clearance, "axial_clearance": j.axial_clearance, "space": j.space,
                    "min_radius": j.min_radius, "min_length": j.min_length, "allow": list(j.allow)},
         "output": {"directory": None if o.directory is None else str(o.directory), "format": o.format,
-                   "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels},
+                   "tolerance": o.tolerance, "plate": list(o.plate), "spacing": o.spacing, "labels": o.labels,
+                   "margin": o.margin, "face_clearance": o.face_clearance},
         **({} if spec.texture is None else {"texture": {"image": str(spec.texture.image), "face": spec.texture.face,
                                                          "transpose": spec.texture.transpose}}),
     }

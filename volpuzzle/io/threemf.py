@@ -135,12 +135,13 @@ def _check_object(path, k, obj):
 
 
 def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Optional[Sequence] = None,
-              accent_rgb=DEFAULT_ACCENT, colors: Optional[Sequence] = None) -> Path:
+              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins", colors: Optional[Sequence] = None) -> Path:
     """Write one mesh object per entry, each placed by its own build item, each with one colour.
 
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,
     transform (3, 4) [R | t] | None). materials: None, or per object None | (m,) int array marking each
-    triangle 0 = the object's colour, 1 = the second material (accent_rgb, e.g. pins).
+    triangle 0 = the object's colour, 1 = the second material (accent_rgb, named accent_name: what it marks).
+    Materials are named for what they are: "piece <name>" for an object's own colour.
     colors: None, or per object None | (m, 3) int array of per-triangle colours or (m, 3 corners, 3) colours at the
     corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
     triangles reference; the object keeps its base material for slicers that only read that.
@@ -155,7 +156,7 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     if colors is not None and len(colors) != len(objects):
         raise ExportError(f"{path}: colors: got {len(colors)} entries, expected one per object ({len(objects)})")
     with _LOCK:
-        _write_model(path, objects, unit, materials, accent_rgb, colors)
+        _write_model(path, objects, unit, materials, accent_rgb, accent_name, colors)
     return path
 
 
@@ -172,7 +173,7 @@ def _color_ids(L, w, cache, rgb):
     return group.GetResourceID(), pid[inverse.reshape(-1)]
 
 
-def _write_model(path, objects, unit, materials, accent_rgb, colors=None) -> None:
+def _write_model(path, objects, unit, materials, accent_rgb, accent_name="pins", colors=None) -> None:
     _, L, w = _lib()
     try:
         model = w.CreateModel()
@@ -194,7 +195,7 @@ def _write_model(path, objects, unit, materials, accent_rgb, colors=None) -> Non
             own_pid = None
             if rgb is not None:
                 r, g, b = (int(x) for x in rgb)
-                own_pid = group.AddMaterial(name, w.RGBAToColor(r, g, b, 255))
+                own_pid = group.AddMaterial(f"piece {name}", w.RGBAToColor(r, g, b, 255))
                 mesh_obj.SetObjectLevelProperty(group.GetResourceID(), own_pid)
             mat = None if materials is None else materials[k]
             if mat is not None:
@@ -206,7 +207,7 @@ def _write_model(path, objects, unit, materials, accent_rgb, colors=None) -> Non
                     raise ExportError(f"{path}: object {name!r}: a second material needs the object's own colour too")
                 if accent_pid is None:
                     r, g, b = (int(x) for x in accent_rgb)
-                    accent_pid = group.AddMaterial("second-material", w.RGBAToColor(r, g, b, 255))
+                    accent_pid = group.AddMaterial(str(accent_name), w.RGBAToColor(r, g, b, 255))
             tex = None if colors is None else colors[k]
             if mat is not None or tex is not None:
                 if own_pid is None:

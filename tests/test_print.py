@@ -1,0 +1,275 @@
+"""Print readiness (issue 10): the face clearance between mating cut faces, the bed contact of every piece in its
+print orientation, the bed margin, labels on every piece, and the preview's depth buffer."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from volpuzzle import compose as C
+from volpuzzle import geometry as G
+
+from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small analytic models)
+from volpuzzle.mapping import Map
+from volpuzzle.tile import tile
+
+# ---------------------------------------------------------------------------------------------------------------------
+# face clearance
+
+
+def _pieces(name, clearance):
+    make, grid, periodic, seams, tol, warp = CASES[name]
+    vol = make()
+    t = tile(vol, grid, periodic=periodic, seams=seams)
+    fmap = Map(vol, _warp() if warp else None, _orientation(vol))
+    sampling = C.sample_parameters(t, fmap, tol)
+    return t, sampling, C.compose(t, fmap, [], tol, sampling=sampling, face_clearance=clearance)
+
+
+@pytest.mark.parametrize("name", ["warped", "twisted", "cone", "pyramid"])
+def test_neighbours_are_apart_by_the_face_clearance_and_volumes_add_up(name):
+    clearance = 0.3
+    t, sampling, plain = _pieces(name, 0.0)
+    _, _, gapped = _pieces(name, clearance)
+    by_cell = {p.cell: p for p in gapped}
+    for p in gapped:
+        G.check_solid(p.mesh, p.id)
+    for f in t.faces:
+        ma, mb = by_cell[f.lower].mesh, by_cell[f.upper].mesh
+        a, b = G.from_trimesh(ma, "a"), G.from_trimesh(mb, "b")
+        # edges of coarse triangles where a cut face meets a collapsed axis or the outside come a little closer
+        assert a.min_gap(b, 5 * clearance) >= 0.75 * clearance, (f.lower, f.upper)
+        # the two sides share one triangulation, each vertex moved by half the clearance along the same normals
+        _, dist, _ = trimesh.proximity.closest_point(mb, ma.vertices)
+        facing = dist[dist < 2 * clearance]
+        assert len(facing) > 10
+        assert facing.min() >= 0.9 * clearance and np.median(facing) == pytest.approx(clearance, rel=0.02)
+    removed = sum(p.volume for p in plain) - sum(p.volume for p in gapped)
+    assert removed == pytest.approx(C.face_clearance_volume(sampling, clearance), rel=0.03)
+
+
+def test_no_clearance_on_a_single_cell():
+    make, grid, periodic, seams, tol, warp = CASES["box"]
+    vol = make()
+    t = tile(vol, (1, 1, 1))
+    fmap = Map(vol, None, _orientation(vol))
+    sampling = C.sample_parameters(t, fmap, tol)
+    plain = C.compose(t, fmap, [], tol, sampling=sampling)
+    gapped = C.compose(t, fmap, [], tol, sampling=sampling, face_clearance=0.3)
+    assert gapped[0].volume == pytest.approx(plain[0].volume, rel=1e-12)
+    assert C.face_clearance_volume(sampling, 0.3) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# preview
+
+
+def test_preview_hides_a_box_inside_another(tmp_path):
+    from PIL import Image
+
+    from volpuzzle.preview import render_preview
+
+    outer = trimesh.creation.box([20, 20, 20])
+    inner = trimesh.creation.box([8, 8, 8])
+    red, blue = np.array([230, 30, 30], np.uint8), np.array([30, 30, 230], np.uint8)
+    for meshes, colors in (([outer, inner], [red, blue]), ([inner, outer], [blue, red])):
+        render_preview(tmp_path / "p.png", meshes, colors, offsets=np.zeros((2, 3)))
+        px = np.asarray(Image.open(tmp_path / "p.png").convert("RGB")).astype(int)
+        blueish = (px[:, :, 2] > px[:, :, 0] + 60)
+        assert not blueish.any()  # whatever the order, no pixel of the hidden box shows
+        assert (px[:, :, 0] > px[:, :, 2] + 60).sum() > 1000  # the outer box is there
+
+
+def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
+    from PIL import Image
+
+    from volpuzzle.preview import render_preview
+
+    box = trimesh.creation.box([20, 20, 20])
+    per_tri = np.tile(np.array([[30, 200, 30]], np.uint8), (len(box.faces), 1))
+    per_tri[box.face_normals[:, 2] > 0.5] = (200, 30, 200)  # the top painted another colour
+    render_preview(tmp_path / "p.png", [box], [per_tri], plate=([(0, np.eye(4))], (60, 50)))
+    img = Image.open(tmp_path / "p.png")
+    assert img.size == (2400, 800)
+    px = np.asarray(img.convert("RGB")).astype(int)
+    magenta = (px[:, :, 0] > 120) & (px[:, :, 2] > 120) & (px[:, :, 1] < 80)
+    green = (px[:, :, 1] > px[:, :, 0] + 60) & (px[:, :, 1] > px[:, :, 2] + 60)
+    for panel in range(3):
+        cols = slice(panel * 800, (panel + 1) * 800)
+        assert magenta[:, cols].sum() > 200 and green[:, cols].sum() > 200
+    grey = ((np.ptp(px, axis=2) < 4) & (px[:, :, 0] > 100) & (px[:, :, 0] < 250))[:, 1600:]
+    assert grey.sum() > 1000  # the bed under the plate view
+
+
+def test_check_from_files_finds_faces_that_close():
+    from volpuzzle.check import check_printability
+
+    report = {"spec": {"output": {"face_clearance": 0.3, "labels": False}}, "pieces": [], "joints": []}
+    _, _, plain = _pieces("warped", 0.0)
+    _, _, gapped = _pieces("warped", 0.3)
+    closed = check_printability(report, {p.id: p.mesh for p in plain})
+    assert any("face each other 0.000 mm apart" in f for f in closed["failures"])
+    ok = check_printability(report, {p.id: p.mesh for p in gapped})
+    assert ok["failures"] == [] and ok["median_face_gap_mm"] == pytest.approx(0.3, rel=0.02)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# bed contact, pins up, margin
+
+
+def test_a_piece_without_a_flat_face_gets_a_base_cut_that_holds_it():
+    from volpuzzle.layout import MIN_BED_MM2, base_cut, bed_contact, plan_pose
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=15.0)
+    assert bed_contact(ball.vertices, ball.faces) < MIN_BED_MM2  # on a point, as it is
+    pose = plan_pose(ball)
+    assert 0 < pose.base_cut_mm <= 0.6
+    cut, removed = base_cut(ball, pose)
+    G.check_solid(cut, "cut ball")
+    assert removed == pytest.approx(ball.volume - cut.volume, rel=1e-6) and 0 < removed < 0.01 * ball.volume
+    placed = cut.copy().apply_transform(pose.rotation)
+    assert bed_contact(placed.vertices, placed.faces) >= 25.0 - 1e-6  # BASE_TARGET[0]
+    # the cut is on the side that goes down
+    lowest = placed.vertices[:, 2].min()
+    flat = placed.face_normals[:, 2] < -0.999
+    assert np.all(placed.triangles_center[flat][:, 2] < lowest + 1e-6)
+
+
+def test_a_flat_face_needs_no_cut_and_pins_go_up():
+    from volpuzzle.layout import PIN_UP_DEG, plan_pose
+
+    cube = trimesh.creation.box([20, 20, 20])
+    pin = np.array([1.0, 0.0, 0.0])
+    pose = plan_pose(cube, [pin])
+    assert pose.base_cut_mm == 0 and pose.bed_contact_mm2 == pytest.approx(400.0, rel=1e-3)
+    assert pose.pins_up == 1 and (pose.rotation[:3, :3] @ pin)[2] >= np.cos(np.radians(PIN_UP_DEG))
+    # a hole must not open onto the bed: with its opening along -z the cube is not laid on its top
+    pose = plan_pose(cube, [], [np.array([0.0, 0.0, 1.0])])
+    assert pose.holes_down == 0 and (pose.rotation[:3, :3] @ np.array([0.0, 0.0, 1.0]))[2] > -0.5
+
+
+def test_layout_keeps_the_margin_and_centres_the_plate():
+    from volpuzzle.layout import layout
+
+    rng = np.random.default_rng(5)
+    parts = [(f"p{i}", trimesh.creation.box(rng.uniform(10, 30, 3))) for i in range(6)]
+    plate, margin = np.array([250.0, 210.0]), 10.0
+    placements, plates = layout(parts, plate, 4.0, margin=margin)
+    meshes = dict(parts)
+    for pl in plates:
+        boxes = np.array([meshes[p.name].copy().apply_transform(p.transform).bounds for p in placements
+                          if p.plate == pl.index])
+        lo, hi = boxes[:, 0, :2].min(axis=0), boxes[:, 1, :2].max(axis=0)
+        assert np.all(lo >= margin - 1e-6) and np.all(hi <= plate - margin + 1e-6)
+        assert (lo + hi) / 2 == pytest.approx(plate / 2, abs=1e-6)
+
+
+def test_margin_that_leaves_no_room_is_refused(tmp_path):
+    from helpers_build import write_spec
+
+    from volpuzzle.errors import SpecError
+    from volpuzzle.spec import load_spec
+
+    spec = write_spec(tmp_path, {"name": "m", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 1],
+                                 "output": {"plate": [100, 60], "margin": 30}})
+    with pytest.raises(SpecError, match=r"output.margin: leaves no room on the plate \(got 30, expected less than "):
+        load_spec(spec)
+    spec = write_spec(tmp_path, {"name": "m", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [1, 1, 1],
+                                 "output": {"face_clearance": 2}})
+    with pytest.raises(SpecError, match=r"output.face_clearance: would leave the pieces loose \(got 2, expected"):
+        load_spec(spec)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# a small build: every piece labelled, on the bed, and the files say so
+
+
+@pytest.mark.slow
+def test_small_build_every_piece_labelled_on_its_bed_and_checked_from_files(tmp_path):
+    import json
+
+    from helpers_build import write_spec
+
+    import volpuzzle
+    from volpuzzle.check import check_directory
+
+    spec = write_spec(tmp_path, {"name": "small", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 2],
+                                 "randomize": {"seed": 1, "amplitude": 0.2, "control_points": 5},
+                                 "output": {"directory": str(tmp_path / "out"), "tolerance": 0.3}})
+    report = volpuzzle.build(spec, jobs=1)
+    out = tmp_path / "out"
+    written = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    joints = written["joints"]
+    for p in written["pieces"]:
+        assert p["label"]["text"], p["id"]
+        assert p["print"]["bed_contact_mm2"] >= 10.0
+        if not p["label"]["on_joint_face"]:
+            # no joint of the piece opens on the label's face
+            n, c = np.array(p["label"]["normal"]), np.array(p["label"]["center_mm"])
+            for j in joints:
+                if p["id"] in (j["pin_piece"], j["hole_piece"]):
+                    facing = abs(np.dot(j["direction"], n)) > 0.7
+                    assert not (facing and abs(np.dot(np.array(j["center_mm"]) - c, n)) < 2)
+    assert report["checks"]["face_clearance_mm"] == 0.15 and report["checks"]["face_clearance_mm3"] > 0
+    printable = check_directory(out)["printability"]
+    assert printable["unlabelled"] == [] and printable["pieces_under_bed_minimum"] == []
+    assert printable["median_face_gap_mm"] == pytest.approx(0.15, rel=0.05)
+    md = (out / "report.md").read_text(encoding="utf-8")
+    assert "Every piece carries a label" in md and "## Fit" in md and "face clearance 0.15 mm" in md
+    html = (out / "instructions.html").read_text(encoding="utf-8")
+    steps = written["assembly"]["pictures"]
+    assert steps and all((out / s).is_file() for s in steps) and html.count("<li>") == len(steps)
+    plate = written["plates"][0]
+    from volpuzzle.io.threemf import read_3mf
+
+    xy = np.concatenate([v[:, :2] for _, v, _, _ in read_3mf(out / plate["file"])])
+    assert xy.min() >= 10.0 - 1e-3 and np.all(xy.max(axis=0) <= np.array([250.0, 210.0]) - 10.0 + 1e-3)
+
+
+def test_pins_below_the_printable_minimum_are_warned_of():
+    from volpuzzle.check import fit_line, pin_fit
+
+    fit = pin_fit("pin", 0.8, 2.0, 0.15, 0.3, 0.15)
+    assert fit["pin_diameter_mm"] == 1.6
+    assert fit["warnings"] == [
+        "joints.radius: pins of radius 0.8 mm are below the printable minimum (expected at least 1 mm)",
+        "joints.length: pins 2 mm long are below the printable minimum (expected at least 3 mm)"]
+    assert pin_fit("pin", 2.5, 6, 0.15, 0.3, 0.15)["warnings"] == []
+    assert "5 mm across, 6 mm long, clearance 0.15 mm radial" in fit_line(pin_fit("pin", 2.5, 6, 0.15, 0.3, 0.15))
+
+
+def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
+    from volpuzzle.check import check_printability
+
+    cone = trimesh.creation.cone(radius=10, height=20)
+    flip = trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0])  # tip down
+    report = {"spec": {"output": {"face_clearance": 0.0}},
+              "pieces": [{"id": "p0", "print": {"plate_transform": flip.tolist()}, "label": {"text": "p0"}}],
+              "joints": [{"pin_piece": "p0", "hole_piece": "p1", "radius_mm": 0.5, "length_mm": 6, "style": "pin"}]}
+    result = check_printability(report, {"p0": cone})
+    assert result["pieces_under_bed_minimum"] == ["p0"]
+    assert "pieces p0 rest on less than 10 mm^2 of the bed" in result["failures"]
+    assert result["warnings"] == ["1 of 1 joints (first p0 -> p1) have pins below the printable minimum (radius down "
+                                  "to 0.5 mm, length down to 6 mm; expected at least 1 and 3 mm)"]
+    upright = check_printability(dict(report, joints=[]), {"p0": cone.copy().apply_transform(flip)})
+    # the same transform applied to a cone already tip down puts it on its base
+    assert upright["failures"] == [] and upright["min_bed_contact_mm2"] > 300
+
+
+def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():
+    from volpuzzle.geometry import from_trimesh
+    from volpuzzle.label import DEPTH_MM, engrave_bed
+
+    slab = trimesh.creation.box([30, 20, 8])
+    turn = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])  # printed on its 30 x 8 side
+    body = from_trimesh(slab, "slab")
+    out, site = engrave_bed(body, turn, "p1-0-0")
+    assert site["face"] == "bed" and site["mirrored"] and site["height_mm"] >= 2.5
+    removed = body.volume() - out.volume()
+    assert removed > 0
+    # every bit taken lies within the groove's depth of the bed side: turned back, the y = -10 face
+    groove = body - out
+    lo, hi = np.asarray(groove.bounding_box()).reshape(2, 3)
+    assert lo[1] >= -10 - 1e-6 and hi[1] <= -10 + DEPTH_MM + 1e-6
+    assert np.allclose(site["normal"], [0, -1, 0], atol=1e-9)
+    tiny = trimesh.creation.box([3, 3, 3])
+    assert engrave_bed(from_trimesh(tiny, "tiny"), np.eye(4), "p0-0-0")[1] is None
