@@ -134,6 +134,33 @@ def test_a_piece_without_a_flat_face_gets_a_base_cut_that_holds_it():
     assert np.all(placed.triangles_center[flat][:, 2] < lowest + 1e-6)
 
 
+def test_a_small_round_piece_gets_a_deeper_cut_rather_than_too_little_bed():
+    from volpuzzle.layout import BASE_CUT_MM, MIN_BED_MM2, base_cut, bed_contact, plan_pose
+
+    # a 2 mm ball: 0.6 mm (the deepest shallow cut) leaves it on about 8 mm^2, under what a first layer holds
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=2.0)
+    pose = plan_pose(ball)
+    assert pose.base_cut_mm > BASE_CUT_MM[-1] and pose.bed_contact_mm2 >= MIN_BED_MM2
+    cut, _ = base_cut(ball, pose)
+    placed = cut.copy().apply_transform(pose.rotation)
+    assert bed_contact(placed.vertices, placed.faces) >= MIN_BED_MM2
+
+
+def test_a_build_whose_piece_would_rest_on_too_little_bed_is_refused(tmp_path, monkeypatch):
+    import volpuzzle
+    from volpuzzle import layout
+    from volpuzzle.errors import GeometryError
+    from helpers_build import example_spec
+
+    # as if every piece, laid out, touched the bed on 5 mm^2: `check` would refuse the folder, so the build must
+    monkeypatch.setattr(layout, "bed_contact", lambda vertices, faces, transform=None: 5.0)
+    spec = example_spec("sphere-shell", tmp_path, tolerance=1.0, grid=[2, 2, 1], randomize=None)
+    with pytest.raises(GeometryError, match=r"sphere-shell: pieces p0-0-0, .* rest on less than 10 mm\^2 of the bed "
+                                            r"even with a base cut of [0-9.]+ mm \(expected at least 10 mm\^2 each"):
+        volpuzzle.build(spec, jobs=1)
+    assert not (tmp_path / "out" / "sphere-shell").exists()
+
+
 def test_a_flat_face_needs_no_cut_and_pins_go_up():
     from volpuzzle.layout import PIN_UP_DEG, plan_pose
 

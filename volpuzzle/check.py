@@ -20,7 +20,7 @@ from .errors import GeometryError, ModelError, VolpuzzleError
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
-           "check_joint_graph", "check_printability", "pin_fit", "fit_line"]
+           "check_joint_graph", "check_printability", "bed_contact_problem", "pin_fit", "fit_line"]
 
 # id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
 # (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
@@ -618,6 +618,11 @@ def _mesh_contact(mesh, transform):
     return bed_contact(mesh.vertices, mesh.faces, transform)
 
 
+def bed_contact_problem(under) -> str:
+    """The sentence for pieces (ids) that rest on less than BED_MIN_MM2: the build and `check` say the same."""
+    return f"pieces {', '.join(under)} rest on less than {BED_MIN_MM2:g} mm^2 of the bed"
+
+
 def check_printability(report: dict, meshes: dict) -> dict:
     """Printability from the files: bed contact of each piece in its print orientation (report.json pieces[].print
     .plate_transform applied to the piece file), the gap between neighbouring pieces (at least the face clearance,
@@ -642,7 +647,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
         if contact[pid] < BED_MIN_MM2:
             under.append(pid)
     if under:
-        failures.append(f"pieces {', '.join(under)} rest on less than {BED_MIN_MM2:g} mm^2 of the bed")
+        failures.append(bed_contact_problem(under))
     unlabelled = [pid for pid in meshes if not ((entries.get(pid) or {}).get("label") or {}).get("text")]
     labels_on = (report.get("spec") or {}).get("output", {}).get("labels", True)
     if labels_on and unlabelled:

@@ -27,6 +27,9 @@ OVERHANG_COS = np.cos(np.radians(45.0))
 MIN_BED_MM2 = 10.0  # less than this on the bed and the first layer has nothing to hold (the slicer refuses it)
 BASE_TARGET = (25.0, 0.08)  # a base cut aims at max(mm^2, share of the footprint) of bed contact
 BASE_CUT_MM = (0.2, 0.3, 0.4, 0.5, 0.6)  # base cut depths tried, shallowest first (a few layers at most)
+# only where those leave less than MIN_BED_MM2 (a piece resting on a round bump): a deeper flat beats a print that
+# the slicer refuses or that comes loose on the first layer
+DEEP_CUT_MM = (0.8, 1.0, 1.3, 1.6, 2.0)
 FIRST_SLICE_MM = 0.1  # a slicer cuts its first 0.2 mm layer here: what it finds is the piece's contact with the bed
 TALL_RATIO = 4.0  # height over the side of the base (the square root of its area) a piece stands up to
 PIN_UP_DEG = 30.0  # a pin within this angle of vertical prints round and strong, with no support
@@ -197,7 +200,9 @@ def plan_pose(mesh, pin_directions=(), hole_openings=()):
     lowest = float(solid.bounding_box()[2])
     depth, area = 0.0, float(solid.slice(lowest + FIRST_SLICE_MM).area())
     if area < target:
-        for d in BASE_CUT_MM:
+        for d in BASE_CUT_MM + DEEP_CUT_MM:
+            if d in DEEP_CUT_MM and area >= MIN_BED_MM2:
+                break  # deeper than a few layers only to reach the least a first layer holds on to
             a = float(solid.slice(lowest + d + FIRST_SLICE_MM).area())  # a cut's flat and the first layer above it
             if a > area:
                 depth, area = d, a

@@ -273,7 +273,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
           allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
-    from .check import assert_passed, check_pieces
+    from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
     from .joint import piece_joints_report
@@ -386,6 +386,11 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         entry["joints"] = piece_joints_report(joints, p.cell)
         entry["print"] = _print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
         entries.append(entry)
+    under = [e["id"] for e in entries if e["print"] and e["print"]["bed_contact_mm2"] < BED_MIN_MM2]
+    if under:  # `volpuzzle check` would refuse the folder: so does the build, before writing it
+        raise GeometryError(f"{spec.name}: {bed_contact_problem(under)} even with a base cut of "
+                            f"{max(state['poses'][pid].base_cut_mm for pid in under):g} mm (expected at least "
+                            f"{BED_MIN_MM2:g} mm^2 each; try another grid or randomize.seed)")
     pictures = [f"steps/step-{n:02d}.png" for n in range(1, len(assembly["steps"]) + 1)]
     report = {
         "volpuzzle_version": __version__,
