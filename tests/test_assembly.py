@@ -5,11 +5,12 @@ that cannot be taken apart is reported welded with its stuck pieces named."""
 import dataclasses
 import itertools
 from collections import Counter
-from functools import lru_cache
+from functools import cache
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from shapes import ring
 
 from volpuzzle import assembly as A
 from volpuzzle import compose as C
@@ -18,7 +19,6 @@ from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
-from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # small models
@@ -160,7 +160,7 @@ def test_with_joints_lists_the_placed_faces():
 # real meshes
 
 
-@lru_cache(maxsize=None)
+@cache
 def _built(name, all_faces=False, tilt_deg=0.0):
     if name == "bent":
         vol, grid, periodic = _bent(), (2, 2, 2), ()

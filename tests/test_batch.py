@@ -5,8 +5,8 @@ import json
 
 import pytest
 from click.testing import CliRunner
-
 from helpers_build import write_spec
+
 from volpuzzle.cli import cli
 from volpuzzle.pipeline import Progress, build
 

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from conftest import DATA
 from helpers_build import write_spec
+
 from volpuzzle.cli import cli
 
 

@@ -1,7 +1,7 @@
 """compose: every piece one closed outward solid, volumes adding up to the model's, no overlaps, the mapped surface
 within the tolerance, shared faces identical on both sides (also across seams), and the same pieces from a pool."""
 
-from functools import lru_cache
+from functools import cache
 from types import SimpleNamespace
 
 import numpy as np
@@ -130,7 +130,7 @@ CASES = {
 }
 
 
-@lru_cache(maxsize=None)
+@cache
 def _built(name, tolerance=None):
     make, grid, periodic, seams, tol, warp = CASES[name]
     vol = make()

@@ -4,9 +4,9 @@ import json
 
 import pytest
 import trimesh
-
 from conftest import REPO
 from helpers_build import example_spec
+
 import volpuzzle
 from volpuzzle.io.threemf import read_3mf
 

@@ -1,7 +1,6 @@
 """The export stage and the 3MF writer: files, read-back, atomicity, determinism."""
 
 import json
-import os
 from types import SimpleNamespace
 
 import numpy as np

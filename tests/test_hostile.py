@@ -17,11 +17,10 @@ import pytest
 import trimesh
 import yaml
 from click.testing import CliRunner
-
-import volpuzzle.cli as cli_mod
-import volpuzzle.export as export_mod
 from conftest import DATA
 from helpers_build import write_spec
+
+import volpuzzle.cli as cli_mod
 from volpuzzle.check import check_directory, check_pieces
 from volpuzzle.cli import cli
 from volpuzzle.errors import ExportError, ModelError, SpecError, VolpuzzleError

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import DATA
 from volpuzzle.errors import ModelError, VolpuzzleError
 from volpuzzle.io import load_model, load_model_with_meta, read_patches, save_model
 from volpuzzle.spline.volume import Volume

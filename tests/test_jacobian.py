@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from volpuzzle.spline import Volume
-from volpuzzle.spline.jacobian import (Certificate, JacobianSpline, certify_negative, certify_positive,
-                                       jacobian_bezier, orientation)
+from volpuzzle.spline.jacobian import (
+    Certificate,
+    JacobianSpline,
+    certify_negative,
+    certify_positive,
+    jacobian_bezier,
+    orientation,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_spline_volume import random_volume  # noqa: E402

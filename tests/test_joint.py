@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shapes import ring
 
 from volpuzzle import joint as J
 from volpuzzle.errors import SpecError
@@ -16,7 +17,6 @@ from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
-from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Small models built here (the real builtins live in volpuzzle.models)

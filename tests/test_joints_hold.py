@@ -6,15 +6,15 @@ from collections import Counter
 
 import numpy as np
 import pytest
-
 from conftest import REPO
 from helpers_build import example_spec, write_spec
+from test_assembly import _bent, _built, _map, _warp
+from test_joint import _body, _cell_solids, _vol
+
 from volpuzzle import joint as J
 from volpuzzle.errors import GeometryError, SpecError
 from volpuzzle.pipeline import prepare
 from volpuzzle.spec import load_spec
-from test_assembly import _bent, _built, _map, _warp
-from test_joint import _body, _cell_solids, _vol
 
 
 def _prepared(name, tmp_path, **over):

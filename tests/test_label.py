@@ -2,7 +2,7 @@
 (one closed solid, the expected volume, only near the chosen face, >= 0.4 mm deep also on a curved face)."""
 
 import time
-from functools import lru_cache
+from functools import cache
 
 import manifold3d as m3
 import numpy as np
@@ -96,7 +96,7 @@ def _box_model():
     return Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _box_puzzle(v_joint=True):
     """Piece p0-0-0 of a 2 x 2 x 1 box puzzle; without v_joint its v-face has no joint (as assembly.py may decide)."""
     vol = _box_model()

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import trimesh
+from helpers_build import write_spec
 from PIL import Image
 
-from helpers_build import write_spec
 import volpuzzle
 from volpuzzle.errors import SpecError
 from volpuzzle.io.threemf import read_3mf

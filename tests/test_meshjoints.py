@@ -7,9 +7,9 @@ import pytest
 import trimesh
 import yaml
 
+from volpuzzle.errors import SpecError
 from volpuzzle.pipeline import build
 from volpuzzle.spec import load_spec
-from volpuzzle.errors import SpecError
 
 
 def knot_tube(p=2, q=3, scale=20.0, tube=5.0, n=240, k=16):

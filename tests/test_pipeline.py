@@ -1,13 +1,12 @@
 """Pipeline behaviour on small specs: determinism, pieces counts, report contents, refusal of bad builds."""
 
-import json
 
 import numpy as np
 import pytest
-
 from helpers_build import example_spec, write_spec
+
 import volpuzzle
-from volpuzzle.errors import ExportError, GeometryError, ModelError, SpecError
+from volpuzzle.errors import ExportError, GeometryError, SpecError
 
 
 def small_box_spec(tmp_path, **over):

@@ -4,11 +4,10 @@ print orientation, the bed margin, labels on every piece, and the preview's dept
 import numpy as np
 import pytest
 import trimesh
+from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small analytic models)
 
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
-
-from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small analytic models)
 from volpuzzle.mapping import Map
 from volpuzzle.tile import tile
 

@@ -5,9 +5,9 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import REPO
 from helpers_build import write_spec
+
 import volpuzzle
 
 

@@ -11,8 +11,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from volpuzzle.errors import SpecError
-from volpuzzle.spec import (CageSpec, JointSpec, OutputSpec, RandomizeSpec, Spec, load_spec, load_spec_text,
-                            spec_to_dict, with_overrides)
+from volpuzzle.spec import (
+    CageSpec,
+    JointSpec,
+    OutputSpec,
+    RandomizeSpec,
+    Spec,
+    load_spec,
+    load_spec_text,
+    spec_to_dict,
+    with_overrides,
+)
 
 PROBLEM_RE = re.compile(r"^\S.*?: .+ \(got .+, expected .+\)$", re.S)
 

@@ -8,10 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volpuzzle.errors import GeometryError, ModelError
-
 from volpuzzle.randomize import warp_family
-from volpuzzle.spline.knots import uniform_knots
 from volpuzzle.spline import Volume
+from volpuzzle.spline.knots import uniform_knots
 from volpuzzle.verify import safe_amplitude, verify_model, verify_warp
 
 UNIT = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])

@@ -10,8 +10,8 @@ import json
 import math
 import time
 import weakref
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence, Tuple
 
 import numpy as np
 import trimesh
@@ -157,7 +157,7 @@ def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: i
     return [(int(i), int(j)) for i, j in pairs]
 
 
-def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
+def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
                  volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3,
                  exact_overlaps: bool = False) -> dict:
     """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
@@ -249,7 +249,7 @@ _REPORT_MAX_BYTES = 64 << 20  # report.json of a 10k-piece puzzle is ~20 MB
 _PIECE_MAX_BYTES = 1 << 30
 
 
-def _inside_file(directory: Path, rel, field: str, max_bytes: int) -> Tuple[Path, bytes]:
+def _inside_file(directory: Path, rel, field: str, max_bytes: int) -> tuple[Path, bytes]:
     """(path, bytes) of the regular file `rel` inside directory, read without following any symlink; raises
     VolpuzzleError naming `field` for anything else: an absolute path, '..', a symlink anywhere on the way, a
     FIFO or device, a file too large. A checker run on a folder someone sent must read that folder only."""

@@ -13,9 +13,9 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
 import trimesh
@@ -529,10 +529,10 @@ def _free_space_problem(parent: Path, items) -> str | None:
 
 
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
-                dowels: Sequence = (), colors: Optional[np.ndarray] = None,
-                extras: Optional[Mapping[str, Callable[[Path], None]]] = None,
-                pin_triangles: Optional[Mapping[str, np.ndarray]] = None,
-                triangle_colors: Optional[Mapping[str, np.ndarray]] = None) -> Path:
+                dowels: Sequence = (), colors: np.ndarray | None = None,
+                extras: Mapping[str, Callable[[Path], None]] | None = None,
+                pin_triangles: Mapping[str, np.ndarray] | None = None,
+                triangle_colors: Mapping[str, np.ndarray] | None = None) -> Path:
     """Write the output folder (SPEC section 5) atomically -> the target path.
 
     pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.

@@ -21,7 +21,7 @@ of a millimetre deeper than that.
 
 import weakref
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
 
@@ -58,7 +58,7 @@ def _cyclic(a):
 # Text
 
 
-@lru_cache(maxsize=None)
+@cache
 def _font():
     from matplotlib.font_manager import FontProperties
 

@@ -17,8 +17,8 @@ from __future__ import annotations
 import ctypes
 import threading
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -73,7 +73,7 @@ def _unit_name(L, value) -> str:
     return names.get(int(value), "millimeter")
 
 
-def _transform(L, t: Optional[np.ndarray]):
+def _transform(L, t: np.ndarray | None):
     """(3, 4) [R | t] acting on column vectors -> lib3mf Transform (row-vector convention, 4 rows of 3)."""
     out = L.Transform()
     m = np.eye(3, 4) if t is None else np.asarray(t, dtype=np.float64)
@@ -134,8 +134,8 @@ def _check_object(path, k, obj):
     return str(name), v, f, rgb, transform
 
 
-def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Optional[Sequence] = None,
-              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins", colors: Optional[Sequence] = None) -> Path:
+def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Sequence | None = None,
+              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins", colors: Sequence | None = None) -> Path:
     """Write one mesh object per entry, each placed by its own build item, each with one colour.
 
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,

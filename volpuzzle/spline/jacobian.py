@@ -14,13 +14,11 @@ Coefficients are in the global parameters (the 1/element-width factors of the ch
 for a polynomial M they bound det J itself; for a rational M they bound W^4 det J.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import permutations
 from math import comb
 
 import numpy as np
-
-from ..errors import ModelError
 
 _CHUNK = 256  # elements per batch, to bound memory of the intermediate products
 
