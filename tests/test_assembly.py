@@ -41,8 +41,8 @@ def _bent():
     k = 0.5523
     arc = np.array([[1, 0], [1, k], [k, 1], [0, 1]], float)
     cp = np.zeros((4, 2, 2, 3))
-    for i, j, l in np.ndindex(4, 2, 2):
-        cp[i, j, l] = [(20.0, 50.0)[j] * arc[i, 0], (20.0, 50.0)[j] * arc[i, 1], 30.0 * l]
+    for i, j, m in np.ndindex(4, 2, 2):
+        cp[i, j, m] = [(20.0, 50.0)[j] * arc[i, 0], (20.0, 50.0)[j] * arc[i, 1], 30.0 * m]
     return Volume((3, 1, 1), (_clamped(4, 3), [0, 0, 1, 1], [0, 0, 1, 1]), cp)
 
 
@@ -163,7 +163,7 @@ def test_with_joints_lists_the_placed_faces():
 @cache
 def _built(name, all_faces=False, tilt_deg=0.0):
     if name == "bent":
-        vol, grid, periodic = _bent(), (2, 2, 2), ()
+        vol, grid = _bent(), (2, 2, 2)
         fmap = _map(vol, _warp())
         t = tile(vol, grid)
     elif name == "box":
@@ -254,7 +254,7 @@ def test_pins_of_a_split_are_parallel_lean_at_most_the_limit_and_still_come_apar
     dirs = A.split_directions(t, fmap, plan)
     assert len(dirs) == len(plan.steps) and all(m > 0 for _, m in dirs)
     assert len(joints) == len(t.faces)  # every contact pinned, not one per split
-    for (d, _), step in zip(dirs, plan.steps):
+    for (d, _), step in zip(dirs, plan.steps, strict=True):
         mv = set(step.moving)
         for j in A._across(joints, step.moving, step.fixed):
             way = 1.0 if tuple(j.hole_cell) in mv else -1.0

@@ -44,7 +44,7 @@ def test_a_batch_builds_the_good_specs_as_build_does_and_reports_the_bad_one(tmp
     assert len(failed) == 1 and failed[0].startswith("broken") and "grid" in failed[0] and "error:" in failed[0]
     assert lines[-1] == "2 built, 1 failed"
     assert not (tmp_path / "batch" / "broken").exists()
-    for spec, name in zip(good, ("small-a", "small-b")):
+    for spec, name in zip(good, ("small-a", "small-b"), strict=True):
         assert any(line.startswith(name) and " ok " in line for line in lines)
         ours = tmp_path / "batch" / name
         theirs = build(spec, output_dir=tmp_path / "build" / name, jobs=1, progress=Progress(False))

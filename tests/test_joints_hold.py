@@ -94,7 +94,7 @@ def test_welded_without_opt_in_fails_the_build_and_with_it_warns(monkeypatch, ca
 
     t, plan, joints, pieces = _built("box")
     stuck = sorted(pieces)[:2]
-    monkeypatch.setattr(A, "verify_disassembly", lambda *a, **k: {
+    monkeypatch.setattr(A, "verify_disassembly", lambda *_a, **_k: {
         "assembly_order": sorted(pieces), "steps": [], "welded": True, "stuck": stuck, "booleans": 0, "seconds": 0})
     with pytest.raises(GeometryError) as e:
         pipeline._assembly(plan, [], joints, pipeline.Timer(), None)

@@ -42,7 +42,7 @@ def test_same_seed_same_bytes(tmp_path):
     (tmp_path / "b").mkdir()
     a = volpuzzle.build(small_box_spec(tmp_path / "a"), jobs=1)
     b = volpuzzle.build(small_box_spec(tmp_path / "b"), jobs=2)
-    for pa, pb in zip(a["pieces"], b["pieces"]):
+    for pa, pb in zip(a["pieces"], b["pieces"], strict=True):
         fa = (tmp_path / "a" / "out" / pa["file"]).read_bytes()
         fb = (tmp_path / "b" / "out" / pb["file"]).read_bytes()
         assert fa == fb
@@ -66,7 +66,8 @@ def test_amplitude_that_folds_names_safe_amplitude(tmp_path):
 
 def test_pin_that_does_not_fit(tmp_path):
     spec = small_box_spec(tmp_path, joints={"radius": 40, "min_radius": 40})
-    with pytest.raises(SpecError, match=r"joints: piece p\S+ gets no joint.*; between .*expected joints.min_radius at most"):
+    with pytest.raises(SpecError,
+                       match=r"joints: piece p\S+ gets no joint.*; between .*expected joints.min_radius at most"):
         volpuzzle.build(spec, jobs=1)
     assert not (tmp_path / "out").exists()
 

@@ -314,7 +314,8 @@ def test_name_with_other_characters(folder):
 
 def test_model_with_two_sources(folder):
     p = only_problem(folder, merged({"model": {"builtin": {"type": "duck-shell"}}}), "model")
-    assert "more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh, shell)" in p
+    assert ("more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh, shell)"
+            in p)
 
 
 def test_model_with_no_source(folder):

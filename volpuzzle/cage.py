@@ -121,9 +121,9 @@ def _box(mesh, pad, cps, balance_grid=None):
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
     degrees = tuple(1 if cps is None else min(3, k - 1) for k in n)
-    knots = tuple(_uniform_knots(k, p) for k, p in zip(n, degrees))
+    knots = tuple(_uniform_knots(k, p) for k, p in zip(n, degrees, strict=True))
     # control points at the Greville abscissae: the spline reproduces the linear map exactly (linear precision)
-    g = [(_greville(kn, p) * 2 - 1) * h for kn, p, h in zip(knots, degrees, half)]
+    g = [(_greville(kn, p) * 2 - 1) * h for kn, p, h in zip(knots, degrees, half, strict=True)]
     local = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1)
     cp = center + local @ axes
     vol = Volume(degrees, knots, cp)

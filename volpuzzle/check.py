@@ -173,7 +173,7 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
     failures = []
     closed_failures = []
     volumes = np.zeros(len(meshes))
-    for k, (pid, mesh) in enumerate(zip(ids, meshes)):
+    for k, (pid, mesh) in enumerate(zip(ids, meshes, strict=True)):
         problem = closed_problem(mesh)
         if problem:
             closed_failures.append(pid)
@@ -681,7 +681,8 @@ def check_printability(report: dict, meshes: dict) -> dict:
     return {"bed_contact_mm2": contact, "min_bed_contact_mm2": min(contact.values()) if contact else None,
             "pieces_under_bed_minimum": under, "min_face_gap_mm": None if gap is None else round(gap, 4),
             "face_gap_pair": pair,
-            "median_face_gap_mm": None if median is None else round(median, 4), "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
+            "median_face_gap_mm": None if median is None else round(median, 4),
+            "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
             "failures": failures, "warnings": warnings}
 
 

@@ -494,7 +494,7 @@ def _cell_means(grid):
     return 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
 
 
-def _heights(cell, fmap, a, side, center, normal, up, uvw0, xs, ys, st=None, inv=None):
+def _heights(cell, fmap, a, center, normal, up, uvw0, xs, ys, st=None, inv=None):
     """Surface heights (len(ys), len(xs)) mm along `normal` above the tangent plane at points (x, y) of it, by Newton
     on the face's two parameters -> (heights, parameters (ny, nx, 2), inverse Jacobians (ny, nx, 2, 2), ok); ok is
     False where Newton left the face or did not converge. st, inv: a guess of both (as _on_face takes them), else one
@@ -549,7 +549,7 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
     half_x = 0.5 * height * ink_w / ink_h + 0.5
     half_y = 0.5 * height + 0.5
     xs, ys = _axis_grid(half_x), _axis_grid(half_y)
-    h, st, inv, ok = _heights(cell, fmap, a, side, center, normal, up, uvw0, xs, ys)
+    h, st, inv, ok = _heights(cell, fmap, a, center, normal, up, uvw0, xs, ys)
     if not ok:
         return None
     gy, gx = np.gradient(h, ys, xs)
@@ -557,7 +557,7 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
         return None
     # the interpolant's error, measured at the cells' centres
     xm, ym = 0.5 * (xs[1:] + xs[:-1]), 0.5 * (ys[1:] + ys[:-1])
-    hm, _, _, ok = _heights(cell, fmap, a, side, center, normal, up, uvw0, xm, ym, st=_spline_grid(xs, ys, st, xm, ym),
+    hm, _, _, ok = _heights(cell, fmap, a, center, normal, up, uvw0, xm, ym, st=_spline_grid(xs, ys, st, xm, ym),
                             inv=_cell_means(inv))
     if not ok:
         return None

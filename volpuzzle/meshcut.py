@@ -7,8 +7,9 @@ the mesh is thin, and a fragment handed to a neighbour could carry half a joint 
 
 Contacts. Two pieces cut from neighbouring cells share the cells' common face exactly: compose tessellates a shared
 face once, and the engine cuts both copies by the same mesh triangles, so the shared patch has the same vertices on
-both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices all belong to the other lies on their contact; the sum of
-their areas is the contact's area (it equals (area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
+both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices
+all belong to the other lies on their contact; the sum of their areas is the contact's area (it equals
+(area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
 A touch along an edge or at a point has no area and is no contact: merging across it would weld a non-manifold solid.
 
 Joints (the paper's Fig. 15). On each contact patch the pin goes where the patch leaves the most wall: the patch
@@ -76,7 +77,7 @@ def _shared_faces(meshes, ids=None):
     eps = 1e-6 * max(span, 1.0)
     out = {}
     for i, mi in enumerate(meshes):
-        for j, mj in enumerate(meshes):
+        for j in range(len(meshes)):
             if i == j or np.any(boxes[i, 0] > boxes[j, 1] + eps) or np.any(boxes[j, 0] > boxes[i, 1] + eps):
                 continue
             on = np.isin(ids[i], ids[j])
@@ -556,7 +557,7 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
             roles = sorted((True, False), key=lambda pa: (pins[c.a if pa else c.b] + holes[c.b if pa else c.a],
                                                           pins[c.a if pa else c.b], not pa))
 
-            def attempt(d):
+            def attempt(d, c=c, roles=roles, patch=patch, crops=crops, memo=memo):
                 """The first role that is not full and whose pin fits clear of the joints placed so far."""
                 why = None
                 for pin_a in roles:
@@ -801,12 +802,12 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
                 ns, ws, _ = crossing(block, moving)
                 if not ns:
                     continue
-                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws)))
+                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws, strict=True)))
                 low = min(float((n @ d).min()) for n in ns)
                 if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
                     continue
                 # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
-                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws)]
+                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws, strict=True)]
                 key = (min(means) >= cos_tilt, min(cut, len(order) - cut), min(means), low)
                 cands.append((key, sorted(moving), sorted(order[:cut]), d))
         cands.sort(key=lambda c: c[0], reverse=True)
@@ -847,7 +848,7 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     blocks = split(sorted(meshes))
     if blocks is None:
         budget[0] = len(meshes)
-        blocks = split(sorted(meshes), strict=False)
+        blocks = split(sorted(meshes), strict=True)
     steps, dir_of = [], {}
     for moving, fixed, d in blocks:
         _, _, pairs = crossing(set(moving) | set(fixed), set(moving))

@@ -588,7 +588,7 @@ def _label(spec, stages, pieces, joints, timer, progress, poses=None):
     with timer("label", progress):
         results = [one(k, p) for k, p in enumerate(pieces)]
     out = [r[0] for r in results]
-    sites = {p.id: r[1] for p, r in zip(pieces, results)}
+    sites = {p.id: r[1] for p, r in zip(pieces, results, strict=True)}
     removed = sum(r[2] for r in results)
     out = _like(pieces, out)
     return out, sites, removed
@@ -640,7 +640,7 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses
 
     pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
-    rgb = {p.id: c for p, c in zip(pieces, colors)}
+    rgb = {p.id: c for p, c in zip(pieces, colors, strict=True)}
     placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
                                 poses=poses, hole_openings=openings)
     meshes = dict(parts)
@@ -663,7 +663,7 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses
     def write_preview(path):
         # pins a shade darker than their piece, so that they stand out
         shaded = []
-        for p, c in zip(pieces, colors):
+        for p, c in zip(pieces, colors, strict=True):
             flag = (pins or {}).get(p.id)
             if texture is None and flag is None:
                 shaded.append(np.asarray(c, np.uint8))

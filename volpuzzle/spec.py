@@ -934,7 +934,7 @@ def spec_to_dict(spec: Spec) -> dict:
         "name": spec.name,
         "model": model,
         "grid": list(spec.grid),
-        "splits": {ax: (list(s) if isinstance(s, tuple) else s) for ax, s in zip(AXES, spec.splits)},
+        "splits": {ax: (list(s) if isinstance(s, tuple) else s) for ax, s in zip(AXES, spec.splits, strict=True)},
         "periodic": [AXES[k] for k in spec.periodic],
         "randomize": None if r is None else {"seed": r.seed, "amplitude": r.amplitude,
                                              "control_points": r.control_points},

@@ -299,4 +299,5 @@ def save_model(vol, path, units="mm"):
     return path
 
 
-__all__ = ["load_model", "load_model_with_meta", "read_patches", "load_surface", "load_surface_with_meta", "save_model", "detect_format", "format_names"]
+__all__ = ["load_model", "load_model_with_meta", "read_patches", "load_surface", "load_surface_with_meta",
+           "save_model", "detect_format", "format_names"]

@@ -239,7 +239,8 @@ def _read_off(path, data):
             tris.extend([idx[0], idx[i], idx[i + 1]] for i in range(1, n - 1))
     f = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
     if len(f) and (f.min() < 0 or f.max() >= nv):
-        raise _err(path, f"OFF: a face refers to vertex {int(f.max() if f.max() >= nv else f.min())}, outside 0..{nv - 1}")
+        raise _err(path, f"OFF: a face refers to vertex {int(f.max() if f.max() >= nv else f.min())}, "
+                         f"outside 0..{nv - 1}")
     return trimesh.Trimesh(v, f, process=True)
 
 
@@ -252,7 +253,7 @@ def _read_3mf(path):
     unit the file declares -- so model.units does not apply to a 3MF (its unit is in the file)."""
     from .threemf import read_3mf
 
-    objects, unit = read_3mf(path, strict=False, with_units=True)
+    objects, unit = read_3mf(path, strict=True, with_units=True)
     if not objects:
         raise _err(path, "the 3MF holds no mesh objects")
     mm = _MM_PER_3MF_UNIT.get(unit, 1.0)

@@ -143,8 +143,9 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Sequ
     triangle 0 = the object's colour, 1 = the second material (accent_rgb, named accent_name: what it marks).
     Materials are named for what they are: "piece <name>" for an object's own colour.
     colors: None, or per object None | (m, 3) int array of per-triangle colours or (m, 3 corners, 3) colours at the
-    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
-    triangles reference; the object keeps its base material for slicers that only read that.
+    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials
+    extension, m:colorgroup) that the triangles reference; the object keeps its base material for slicers that only
+    read that.
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
     path = Path(path)
@@ -160,7 +161,7 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Sequ
     return path
 
 
-def _color_ids(L, w, cache, rgb):
+def _color_ids(w, cache, rgb):
     """Colour-group property ids for (k, 3) colours, adding each distinct colour once to the file's group."""
     group, ids = cache["group"], cache["ids"]
     keys = (rgb[:, 0].astype(np.int64) << 16) | (rgb[:, 1].astype(np.int64) << 8) | rgb[:, 2].astype(np.int64)
@@ -225,7 +226,7 @@ def _write_model(path, objects, unit, materials, accent_rgb, accent_name="pins",
                                           f"values in 0..255 or -1, got shape {tex.shape}")
                     on = tex[:, 0, 0] >= 0
                     if np.any(on):
-                        rid, cpid = _color_ids(L, w, color_cache, tex[on].reshape(-1, 3))
+                        rid, cpid = _color_ids(w, color_cache, tex[on].reshape(-1, 3))
                         rids[on], pids[on] = rid, cpid.reshape(-1, 3)
                 _set_triangle_materials(L, w, mesh_obj, rids, pids)
             item = model.AddBuildItem(mesh_obj, _transform(L, transform))
@@ -381,7 +382,7 @@ def read_triangle_colors(path, strict: bool = True):
             rgb = np.tile(np.array((128, 128, 128) if own is None else own, np.uint8), (n, 3, 1))
             rid_corner = np.repeat(props["rid"][:, None], 3, axis=1)
             lookup = {}
-            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist())):
+            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist(), strict=True)):
                 if rid == 0:
                     continue
                 try:

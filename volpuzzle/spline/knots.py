@@ -42,7 +42,8 @@ def insert_knot(knots, degree, hpoints, t, times=1, axis=0):
     """Boehm's algorithm (NURBS Book A5.1) along `axis` of hpoints (..., n, ..., d).
 
     Returns (new_knots (m + times,), new_hpoints with n + times along axis). t must lie in the domain
-    [knots[p], knots[n]) (its start too, for clamping a floating knot vector), and its multiplicity after insertion may not exceed the degree.
+    [knots[p], knots[n]) (its start too, for clamping a floating knot vector),
+    and its multiplicity after insertion may not exceed the degree.
     """
     knots = np.asarray(knots, dtype=float)
     p = int(degree)
