@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .joint import joint_graph, piece_id
+from .grid import AXES, piece_id
+from .joint import joint_graph
 
-AXES = "uvw"
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
 
 

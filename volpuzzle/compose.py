@@ -26,8 +26,8 @@ from scipy.spatial import Delaunay
 
 from . import geometry
 from .errors import GeometryError
+from .grid import AXES
 
-AXES = "uvw"
 # Measured points (edge midpoints and quarter points, triangle centroids) are held to this fraction of the
 # tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
 _SAFETY = 0.8

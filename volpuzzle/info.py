@@ -2,7 +2,7 @@
 
 import numpy as np
 
-AXES = "uvw"
+from .grid import AXES
 
 
 def _knot_summary(knots, degree):

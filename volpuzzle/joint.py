@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import GeometryError, SpecError
+from .grid import AXES, frame_from_direction, piece_id
 
-AXES = "uvw"
 CIRCLE_TOL = 0.02  # mm: largest distance between a joint's polygon and its circle
 SNAP_SWELL = 1.15  # widest radius of a snap pin, in pin radii
 DEFAULT_CLEARANCE = 0.15
@@ -61,10 +61,6 @@ def wall(radius):
 def outer_radius(radius, shape):
     """The widest radius of a pin of this shape (a snap pin swells), mm."""
     return radius * (SNAP_SWELL if shape == "snap" else 1.0)
-
-
-def piece_id(index):
-    return "p" + "-".join(str(int(i)) for i in index)
 
 
 def _cyclic(a):
@@ -819,11 +815,7 @@ def _checked(m, what):
 
 def _frame(j, flip=False):
     """3x4 rigid transform: local z -> the joint's direction (reversed if flip), origin -> its centre."""
-    n = np.asarray(j.direction, dtype=float) * (-1.0 if flip else 1.0)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = np.cross(helper, n)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    e1, e2, n = frame_from_direction(np.asarray(j.direction, dtype=float) * (-1.0 if flip else 1.0))
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, j.center
     return m

@@ -225,7 +225,7 @@ def joint_directions(joints):
     """{piece id: [(3,) pin directions]} and {piece id: [(3,) directions its holes open towards]}: a pin leaves its
     piece along the joint's direction, the hole it enters opens back against it; a dowel's two holes open towards
     each other."""
-    from .joint import piece_id
+    from .grid import piece_id
 
     pins, openings = {}, {}
     for j in joints or ():

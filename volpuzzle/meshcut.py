@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .grid import frame_from_direction
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
@@ -270,19 +271,11 @@ def _reach(size, radius):
     return outer_radius(radius, size.shape) + size.clearance
 
 
-def _frame(d):
-    d = np.asarray(d, float)
-    d = d / np.linalg.norm(d)
-    helper = np.eye(3)[int(np.argmin(np.abs(d)))]
-    e1 = np.cross(helper, d)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(d, e1), d
-
-
 def _cylinder(center, d, r, z0, z1, segments=24):
     import manifold3d
 
-    e1, e2, n = _frame(d)
+    d = np.asarray(d, float)
+    e1, e2, n = frame_from_direction(d / np.linalg.norm(d))
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
     cyl = manifold3d.Manifold.cylinder(z1 - z0, r, -1.0, segments).translate([0.0, 0.0, z0])
@@ -642,7 +635,7 @@ def joint_graph_problem(piece_ids, joints, records):
     piece left out and why its contacts took no pin."""
     import networkx as nx
 
-    from .joint import piece_id
+    from .grid import piece_id
 
     g = nx.Graph()
     g.add_nodes_from(piece_ids)

@@ -12,8 +12,7 @@ import numpy as np
 
 from . import __version__
 from .errors import GeometryError, SpecError
-
-AXES = "uvw"
+from .grid import AXES
 
 
 class Progress:
@@ -417,7 +416,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
 def _require_joined(spec, pieces, joints, contacts):
     """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
-    from .joint import graph_problem, piece_id
+    from .grid import piece_id
+    from .joint import graph_problem
 
     problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
                             contacts or (), spec.joints.style, spec.joints.allow, spec.grid)

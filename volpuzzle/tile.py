@@ -5,8 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SpecError
-
-AXES = "uvw"
+from .grid import AXES, piece_id
 
 
 @dataclass(frozen=True, eq=False)
@@ -18,7 +17,7 @@ class Cell:
 
     @property
     def id(self):
-        return "p" + "-".join(str(i) for i in self.index)
+        return piece_id(self.index)
 
     @property
     def center(self):

@@ -24,7 +24,6 @@ HEAD_BYTES = 65536
 # that areas, volumes and Jacobians of it stay finite in double precision (1e308 made every figure inf or NaN).
 MAX_COORDINATE = 1e9
 UNITS = ("mm", "cm", "m", "in")
-AXES = "uvw"
 
 
 # --- helpers shared by the format modules ---------------------------------------------------------------------

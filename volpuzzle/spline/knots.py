@@ -8,8 +8,7 @@ volume is refined exactly (The NURBS Book, section 5.2: insert in homogeneous sp
 import numpy as np
 
 from ..errors import ModelError
-
-AXES = "uvw"
+from ..grid import AXES
 
 
 def uniform_knots(n, lo=0.0, hi=1.0, degree=3):

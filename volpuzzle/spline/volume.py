@@ -11,6 +11,7 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ModelError
+from ..grid import AXES
 from . import basis
 from . import knots as knots_mod
 
@@ -57,7 +58,6 @@ def _axis_index(axis):
         return AXES.index(axis)
     raise ModelError(f"axis: expected 0, 1, 2 or 'u', 'v', 'w', got {axis!r}")
 
-AXES = "uvw"
 
 
 def _readonly(a):
