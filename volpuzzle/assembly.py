@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .geometry import is_ok
 from .grid import AXES, piece_id
 from .joint import joint_graph
 
@@ -348,10 +349,8 @@ def _as_manifold(mesh, pid):
 
 
 def _overlap(a, b):
-    import manifold3d
-
     inter = a ^ b
-    if inter.status() != manifold3d.Error.NoError:
+    if not is_ok(inter):
         raise GeometryError(f"assembly check: intersection failed (status {inter.status().name})")
     return float(inter.volume())
 

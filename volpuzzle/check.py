@@ -17,6 +17,7 @@ import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
+from .geometry import is_ok
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
@@ -96,10 +97,8 @@ def piece_solid(mesh: trimesh.Trimesh, pid: str):
 
 def overlap_volume(a, b) -> float:
     """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
-    import manifold3d
-
     inter = a ^ b
-    if inter.status() != manifold3d.Error.NoError:
+    if not is_ok(inter):
         raise GeometryError(f"intersection failed with status {inter.status()}")
     return float(inter.volume())
 
@@ -429,7 +428,7 @@ def _cylinder(center, direction, radius, start, stop, segments=48):
     rot = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
     rot[:3, 3] = np.asarray(center, float) + start * d
     cyl = manifold3d.Manifold.cylinder(stop - start, radius, radius, segments).transform(rot[:3, :])
-    if cyl.status() != manifold3d.Error.NoError or cyl.is_empty():
+    if not is_ok(cyl) or cyl.is_empty():
         raise GeometryError(f"joint check: cannot build a test cylinder of radius {radius:g} mm ({cyl.status()})")
     return cyl
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import GeometryError, SpecError
+from .geometry import is_ok
 from .grid import AXES, frame_from_direction, piece_id
 
 CIRCLE_TOL = 0.02  # mm: largest distance between a joint's polygon and its circle
@@ -807,9 +808,8 @@ def _manifold():
 
 
 def _checked(m, what):
-    status = m.status()
-    if status != _manifold().Error.NoError:
-        raise GeometryError(f"{what}: the geometry engine failed ({status})")
+    if not is_ok(m):
+        raise GeometryError(f"{what}: the geometry engine failed ({m.status()})")
     return m
 
 

@@ -26,6 +26,7 @@ from functools import cache, lru_cache
 import numpy as np
 
 from .errors import GeometryError
+from .geometry import is_ok
 
 DEPTH_MM = 0.4
 MIN_STROKE_MM = 0.8  # narrowest stem a 0.4 mm nozzle prints as two lines
@@ -685,7 +686,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if cs is None:
         raise GeometryError(f"{what}: label {text!r} at {site.height_mm:.2f} mm is too small to print "
                             f"(expected at least {min_height_mm(text, stroke):.2f} mm)")
-    if body.status() != m3.Error.NoError:
+    if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
     h = _measured_heights(body, site)
@@ -721,12 +722,12 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
         return frame[:, 3] + v[:, 0:1] * frame[:, 0] + v[:, 1:2] * frame[:, 1] + z[:, None] * frame[:, 2]
 
     prism = prism.warp_batch(bend)
-    if prism.status() != m3.Error.NoError or prism.is_empty():
+    if not is_ok(prism) or prism.is_empty():
         raise GeometryError(f"{what}: the geometry engine failed building the label {text!r} "
                             f"(status {prism.status().name})")
     before = len(body.decompose())
     out = body - prism
-    if out.status() != m3.Error.NoError:
+    if not is_ok(out):
         raise GeometryError(f"{what}: the geometry engine failed engraving the label {text!r} "
                             f"(status {out.status().name})")
     if out.is_empty() or len(out.decompose()) != before:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .geometry import check_status
 from .grid import frame_from_direction
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
@@ -35,23 +36,14 @@ _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
 
-def _check(m, what, step):
-    import manifold3d
-
-    status = m.status()
-    if status != manifold3d.Error.NoError:
-        raise GeometryError(f"{what}: the geometry engine failed at {step} (status {status.name})")
-    return m
-
-
 def intersect_pieces(pieces_bodies, mesh_manifold, min_volume=1e-9):
     """{id: Manifold} cage pieces (mm) and the mesh as a Manifold -> {id: body ∩ mesh}. A cell that misses the mesh
     (empty or below min_volume mm^3) gives no piece."""
-    _check(mesh_manifold, "mesh model", "the mesh solid")
+    check_status(mesh_manifold, "mesh model", "the mesh solid")
     out = {}
     for pid, body in pieces_bodies.items():
-        _check(body, pid, "the cage piece")
-        cut = _check(body ^ mesh_manifold, pid, "intersecting the piece with the mesh")
+        check_status(body, pid, "the cage piece")
+        cut = check_status(body ^ mesh_manifold, pid, "intersecting the piece with the mesh")
         if not cut.is_empty() and cut.volume() > min_volume:
             out[pid] = cut
     return out
@@ -193,7 +185,7 @@ def merge_fragments(pieces, min_fraction=0.05):
         if best is None:
             break
         _, c, o = best
-        merged = _check(solid[o] + solid[c], bodies[min(members[o])][0], "merging a fragment")
+        merged = check_status(solid[o] + solid[c], bodies[min(members[o])][0], "merging a fragment")
         if not _one_manifold_solid(merged):
             # the two also meet along an edge or at a point somewhere (four cells around a cage edge cut a tube into
             # quarters; diagonal quarters touch along the edge): welded, that is no solid a slicer takes
@@ -279,7 +271,7 @@ def _cylinder(center, d, r, z0, z1, segments=24):
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
     cyl = manifold3d.Manifold.cylinder(z1 - z0, r, -1.0, segments).translate([0.0, 0.0, z0])
-    return _check(cyl.transform(m), "joint", "the joint's room")
+    return check_status(cyl.transform(m), "joint", "the joint's room")
 
 
 def _outside(env, solids):
@@ -296,7 +288,7 @@ def _crop(solid, lo, hi):
     import manifold3d
 
     box = manifold3d.Manifold.cube(list(np.asarray(hi) - np.asarray(lo))).translate(list(lo))
-    return _check(solid ^ box, "joint", "cropping a piece around a contact")
+    return check_status(solid ^ box, "joint", "cropping a piece around a contact")
 
 
 def _samples(tris, rng, spacing):
