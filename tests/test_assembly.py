@@ -144,6 +144,7 @@ def test_step_problems_name_a_sliding_step_and_a_loose_one():
     assert any("push into p1-0-0" in p for p in A.step_problems(t, pushing))
 
 
+@pytest.mark.slow
 def test_with_joints_lists_the_placed_faces():
     t = tile(_box(), (2, 2, 2))
     fmap = _map(_box())
@@ -209,7 +210,7 @@ def _assert_comes_apart(res, ids):
         seen |= set(s["pieces"])
 
 
-@pytest.mark.parametrize("name", ["bent", "ring"])
+@pytest.mark.parametrize("name", [pytest.param("bent", marks=pytest.mark.slow), "ring"])
 def test_real_pieces_come_apart_along_the_plan(name):
     t, plan, joints, pieces = _built(name)
     res = A.verify_disassembly(pieces, joints, plan)

@@ -71,6 +71,7 @@ def test_two_specs_writing_one_folder_are_refused_before_any_work(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
     a = write_spec(tmp_path, _small("alone", 1), "a.yaml")
     result = CliRunner().invoke(cli, ["batch", str(a), "--scheduler", "tcp://127.0.0.1:9"])

@@ -37,6 +37,7 @@ def test_report_has_every_contract_key(tmp_path):
     assert report["spec"]["output"]["tolerance"] == 0.5
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes(tmp_path):
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
@@ -48,6 +49,7 @@ def test_same_seed_same_bytes(tmp_path):
         assert fa == fb
 
 
+@pytest.mark.slow
 def test_existing_output_needs_force(tmp_path):
     spec = small_box_spec(tmp_path)
     volpuzzle.build(spec, jobs=1)
@@ -85,6 +87,7 @@ def test_unknown_builtin_is_a_spec_error(tmp_path):
         volpuzzle.build(spec, jobs=1)
 
 
+@pytest.mark.slow
 def test_periodic_twisted_torus_small(tmp_path):
     spec = example_spec("twisted-torus", tmp_path, tolerance=0.5, grid=[2, 2, 4])
     report = volpuzzle.build(spec, jobs=1)

@@ -62,6 +62,7 @@ def test_no_clearance_on_a_single_cell():
 # preview
 
 
+@pytest.mark.slow
 def test_preview_hides_a_box_inside_another(tmp_path):
     from PIL import Image
 

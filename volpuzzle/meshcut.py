@@ -833,7 +833,7 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     blocks = split(sorted(meshes))
     if blocks is None:
         budget[0] = len(meshes)
-        blocks = split(sorted(meshes), strict=True)
+        blocks = split(sorted(meshes), strict=False)
     steps, dir_of = [], {}
     for moving, fixed, d in blocks:
         _, _, pairs = crossing(set(moving) | set(fixed), set(moving))

@@ -253,7 +253,7 @@ def _read_3mf(path):
     unit the file declares -- so model.units does not apply to a 3MF (its unit is in the file)."""
     from .threemf import read_3mf
 
-    objects, unit = read_3mf(path, strict=True, with_units=True)
+    objects, unit = read_3mf(path, strict=False, with_units=True)
     if not objects:
         raise _err(path, "the 3MF holds no mesh objects")
     mm = _MM_PER_3MF_UNIT.get(unit, 1.0)
