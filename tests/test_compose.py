@@ -263,6 +263,7 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
     assert seams_seen > 0 or not t.periodic
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("main_takes", [False, True])
 def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
     # with main_takes False the workers build every piece; with True this process builds alongside them

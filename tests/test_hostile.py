@@ -249,6 +249,7 @@ def _mount_tmpfs(path, size="2m"):
     return r.returncode == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["stl", "3mf"])
 def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, fmt):
     disk = tmp_path / "disk"

@@ -21,6 +21,7 @@ def small_box_spec(tmp_path, **over):
     return write_spec(tmp_path, spec)
 
 
+@pytest.mark.slow
 def test_report_has_every_contract_key(tmp_path):
     report = volpuzzle.build(small_box_spec(tmp_path), jobs=1)
     for key in ("volpuzzle_version", "spec", "model", "randomize", "pieces", "joints", "checks", "plates",

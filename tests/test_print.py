@@ -79,6 +79,7 @@ def test_preview_hides_a_box_inside_another(tmp_path):
         assert (px[:, :, 0] > px[:, :, 2] + 60).sum() > 1000  # the outer box is there
 
 
+@pytest.mark.slow
 def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
     from PIL import Image
 

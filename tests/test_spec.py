@@ -548,6 +548,7 @@ _garbage = st.fixed_dictionaries({}, optional={
     "junk": _values, **_sections})
 
 
+@pytest.mark.slow
 @settings(max_examples=80, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(_garbage)
