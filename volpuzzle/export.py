@@ -469,7 +469,8 @@ def remove_stale_temporaries(target: Path) -> list:
     return removed
 
 
-_OUTPUT_NAMES = {"pieces", "dowels", "plates", "puzzle.3mf", "preview.png", "report.json", "report.md"}
+_OUTPUT_NAMES = {"pieces", "dowels", "plates", "steps", "puzzle.3mf", "preview.png", "report.json", "report.md",
+                 "instructions.html"}
 
 
 def _legacy_temporary(folder: Path, age_s: float = 3600.0) -> bool:
