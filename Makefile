@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 SPECS := $(wildcard specs/*.yaml)
 OUTS := $(patsubst specs/%.yaml,out/%/report.json,$(SPECS))
 
-.PHONY: setup demo test paper bench models slicer-check clean
+.PHONY: setup demo test test-fast lint paper bench models slicer-check clean
 .DELETE_ON_ERROR:
 
 $(VENV)/.installed: pyproject.toml
@@ -20,6 +20,13 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest
+
+# The quick loop while working: everything but the tests marked slow (end-to-end builds over ~3 s), under a minute.
+test-fast: setup
+	$(PY) -m pytest -m "not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check .
 
 # Any spec as a file target, so that `make -j` runs a print batch.
 out/%/report.json: specs/%.yaml $(VENV)/.installed

@@ -117,7 +117,8 @@ def show_joints(fig):
     def n(x):
         return "-" if x is None else str(x)
 
-    share = f" ({100.0 * fig['pinned_with_room'] / fig['with_room']:.0f}% of those with room)" if fig["with_room"] else ""
+    share = (f" ({100.0 * fig['pinned_with_room'] / fig['with_room']:.0f}% of those with room)"
+             if fig["with_room"] else "")
     loose = fig["pieces_without_joint"]
     line = (f"  joints: {n(fig['touching_pairs'])} touching pairs, {n(fig['with_room'])} with room, "
             f"{n(fig['pinned'])} pinned{share}; {len(loose)} pieces without a joint"
@@ -148,7 +149,7 @@ def stage_table(results):
 
 def fit(sizes, times):
     """Least-squares k in t = a n^k over the sizes (times below 10 ms are noise and left out)."""
-    pts = [(math.log(n), math.log(t)) for n, t in zip(sizes, times) if t > 0.01]
+    pts = [(math.log(n), math.log(t)) for n, t in zip(sizes, times, strict=True) if t > 0.01]
     if len(pts) < 2:
         return float("nan")
     mx = sum(p[0] for p in pts) / len(pts)

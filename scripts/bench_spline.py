@@ -52,8 +52,6 @@ def main():
     b, m = best(lambda: vol._project(*vol._numpy_sums(uvw[:100_000], True)), repeat=2)
     print(f"  (numpy reference path, value + partials:       {1e5 / b / 1e6:.2f} M pts/s)")
     from volpuzzle.spline import _fast
-    out = np.empty((n, 3))
-    der = np.empty((n, 3, 3))
     for want, label in ((False, "value-only"), (True, "value + partials")):
         c = time.process_time()
         fn = _fast.kernel(vol.degrees, want)

@@ -59,7 +59,7 @@ def summary(directory):
     report = json.loads((directory / "report.json").read_text(encoding="utf-8"))
     pieces = report.get("pieces") or []
     prints = [p.get("print") or {} for p in pieces]
-    low = [p["id"] for p, x in zip(pieces, prints) if (x.get("bed_contact_mm2") or 0) < 10]
+    low = [p["id"] for p, x in zip(pieces, prints, strict=True) if (x.get("bed_contact_mm2") or 0) < 10]
     pins, up = sum(x.get("pins") or 0 for x in prints), sum(x.get("pins_up") or 0 for x in prints)
     unlabelled = [p["id"] for p in pieces if not (p.get("label") or {}).get("text")]
     return (f"{len(pieces)} pieces; under 10 mm^2 on the bed: {len(low)}{' ' + ', '.join(low) if low else ''}; "

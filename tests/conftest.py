@@ -14,5 +14,5 @@ def _no_terminal_progress(monkeypatch):
     monkeypatch.setenv("VOLPUZZLE_NO_PROGRESS", "1")
 
 
-def pytest_configure(config):
+def pytest_configure():
     os.environ.setdefault("NUMBA_NUM_THREADS", "2")

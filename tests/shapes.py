@@ -15,12 +15,12 @@ def ring(twist=0.0, major=40.0, side=16.0, n=17):
     knots = np.concatenate([[0, 0, 0], np.linspace(0, 1, n - 2), [1, 1, 1]])
     grev = np.array([knots[i + 1:i + 4].mean() for i in range(n)])
     cp = np.zeros((2, 2, n, 3))
-    for i, j, l in np.ndindex(2, 2, n):
+    for i, j, m in np.ndindex(2, 2, n):
         s, t = (i - 0.5) * side, (j - 0.5) * side
-        phi, th = 2 * np.pi * grev[l], twist * grev[l]
-        if l == n - 1:
+        phi, th = 2 * np.pi * grev[m], twist * grev[m]
+        if m == n - 1:
             phi = 0.0
         er = np.array([np.cos(phi), np.sin(phi), 0.0])
         ez = np.array([0.0, 0.0, 1.0])
-        cp[i, j, l] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
+        cp[i, j, m] = major * er + (s * np.cos(th) - t * np.sin(th)) * er + (s * np.sin(th) + t * np.cos(th)) * ez
     return Volume((1, 1, 3), ([0, 0, 1, 1], [0, 0, 1, 1], knots), cp)

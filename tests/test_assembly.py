@@ -5,11 +5,12 @@ that cannot be taken apart is reported welded with its stuck pieces named."""
 import dataclasses
 import itertools
 from collections import Counter
-from functools import lru_cache
+from functools import cache
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from shapes import ring
 
 from volpuzzle import assembly as A
 from volpuzzle import compose as C
@@ -18,7 +19,6 @@ from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
-from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # small models
@@ -41,8 +41,8 @@ def _bent():
     k = 0.5523
     arc = np.array([[1, 0], [1, k], [k, 1], [0, 1]], float)
     cp = np.zeros((4, 2, 2, 3))
-    for i, j, l in np.ndindex(4, 2, 2):
-        cp[i, j, l] = [(20.0, 50.0)[j] * arc[i, 0], (20.0, 50.0)[j] * arc[i, 1], 30.0 * l]
+    for i, j, m in np.ndindex(4, 2, 2):
+        cp[i, j, m] = [(20.0, 50.0)[j] * arc[i, 0], (20.0, 50.0)[j] * arc[i, 1], 30.0 * m]
     return Volume((3, 1, 1), (_clamped(4, 3), [0, 0, 1, 1], [0, 0, 1, 1]), cp)
 
 
@@ -144,6 +144,7 @@ def test_step_problems_name_a_sliding_step_and_a_loose_one():
     assert any("push into p1-0-0" in p for p in A.step_problems(t, pushing))
 
 
+@pytest.mark.slow
 def test_with_joints_lists_the_placed_faces():
     t = tile(_box(), (2, 2, 2))
     fmap = _map(_box())
@@ -160,10 +161,10 @@ def test_with_joints_lists_the_placed_faces():
 # real meshes
 
 
-@lru_cache(maxsize=None)
+@cache
 def _built(name, all_faces=False, tilt_deg=0.0):
     if name == "bent":
-        vol, grid, periodic = _bent(), (2, 2, 2), ()
+        vol, grid = _bent(), (2, 2, 2)
         fmap = _map(vol, _warp())
         t = tile(vol, grid)
     elif name == "box":
@@ -209,7 +210,7 @@ def _assert_comes_apart(res, ids):
         seen |= set(s["pieces"])
 
 
-@pytest.mark.parametrize("name", ["bent", "ring"])
+@pytest.mark.parametrize("name", [pytest.param("bent", marks=pytest.mark.slow), "ring"])
 def test_real_pieces_come_apart_along_the_plan(name):
     t, plan, joints, pieces = _built(name)
     res = A.verify_disassembly(pieces, joints, plan)
@@ -254,7 +255,7 @@ def test_pins_of_a_split_are_parallel_lean_at_most_the_limit_and_still_come_apar
     dirs = A.split_directions(t, fmap, plan)
     assert len(dirs) == len(plan.steps) and all(m > 0 for _, m in dirs)
     assert len(joints) == len(t.faces)  # every contact pinned, not one per split
-    for (d, _), step in zip(dirs, plan.steps):
+    for (d, _), step in zip(dirs, plan.steps, strict=True):
         mv = set(step.moving)
         for j in A._across(joints, step.moving, step.fixed):
             way = 1.0 if tuple(j.hole_cell) in mv else -1.0

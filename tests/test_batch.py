@@ -5,8 +5,8 @@ import json
 
 import pytest
 from click.testing import CliRunner
-
 from helpers_build import write_spec
+
 from volpuzzle.cli import cli
 from volpuzzle.pipeline import Progress, build
 
@@ -44,7 +44,7 @@ def test_a_batch_builds_the_good_specs_as_build_does_and_reports_the_bad_one(tmp
     assert len(failed) == 1 and failed[0].startswith("broken") and "grid" in failed[0] and "error:" in failed[0]
     assert lines[-1] == "2 built, 1 failed"
     assert not (tmp_path / "batch" / "broken").exists()
-    for spec, name in zip(good, ("small-a", "small-b")):
+    for spec, name in zip(good, ("small-a", "small-b"), strict=True):
         assert any(line.startswith(name) and " ok " in line for line in lines)
         ours = tmp_path / "batch" / name
         theirs = build(spec, output_dir=tmp_path / "build" / name, jobs=1, progress=Progress(False))
@@ -71,6 +71,7 @@ def test_two_specs_writing_one_folder_are_refused_before_any_work(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
     a = write_spec(tmp_path, _small("alone", 1), "a.yaml")
     result = CliRunner().invoke(cli, ["batch", str(a), "--scheduler", "tcp://127.0.0.1:9"])

@@ -3,12 +3,22 @@
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from volpuzzle.check import (assert_passed, candidate_pairs, check_directory, check_pieces, closed_problem,
-                             overlap_volume, piece_solid, shifted_overlap, signed_volume)
-from volpuzzle.geometry import manifold_from_mesh
+from volpuzzle.check import (
+    assert_passed,
+    candidate_pairs,
+    check_directory,
+    check_pieces,
+    closed_problem,
+    overlap_volume,
+    piece_solid,
+    shifted_overlap,
+    signed_volume,
+)
 from volpuzzle.errors import GeometryError, VolpuzzleError
+from volpuzzle.geometry import manifold_from_mesh
 
 
 def split_box(n=2, size=10.0):

@@ -6,8 +6,8 @@ import shutil
 import pytest
 import trimesh
 from click.testing import CliRunner
-
 from helpers_build import write_spec
+
 import volpuzzle
 from volpuzzle.check import check_directory
 from volpuzzle.cli import cli

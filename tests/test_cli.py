@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from conftest import DATA
 from helpers_build import write_spec
+
 from volpuzzle.cli import cli
 
 
@@ -97,6 +97,7 @@ def test_build_refuses_existing_folder_without_force(tmp_path):
     assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_build_then_check(tmp_path):
     spec = write_spec(tmp_path, spec_dict(tmp_path))
     result = run("build", spec, "--jobs", "1")

@@ -1,7 +1,7 @@
 """compose: every piece one closed outward solid, volumes adding up to the model's, no overlaps, the mapped surface
 within the tolerance, shared faces identical on both sides (also across seams), and the same pieces from a pool."""
 
-from functools import lru_cache
+from functools import cache
 from types import SimpleNamespace
 
 import numpy as np
@@ -105,9 +105,9 @@ def _volume_by_quadrature(vol, n=6):
     x, w = np.polynomial.legendre.leggauss(n)
     total = 0.0
     spans = [np.unique(k) for k in vol.knots]
-    for a0, a1 in zip(spans[0][:-1], spans[0][1:]):
-        for b0, b1 in zip(spans[1][:-1], spans[1][1:]):
-            for c0, c1 in zip(spans[2][:-1], spans[2][1:]):
+    for a0, a1 in zip(spans[0][:-1], spans[0][1:], strict=True):
+        for b0, b1 in zip(spans[1][:-1], spans[1][1:], strict=True):
+            for c0, c1 in zip(spans[2][:-1], spans[2][1:], strict=True):
                 pts = [0.5 * (lo + hi) + 0.5 * (hi - lo) * x for lo, hi in ((a0, a1), (b0, b1), (c0, c1))]
                 uvw = np.stack(np.meshgrid(*pts, indexing="ij"), -1).reshape(-1, 3)
                 ww = np.einsum("i,j,k->ijk", w, w, w).ravel()
@@ -130,7 +130,7 @@ CASES = {
 }
 
 
-@lru_cache(maxsize=None)
+@cache
 def _built(name, tolerance=None):
     make, grid, periodic, seams, tol, warp = CASES[name]
     vol = make()
@@ -252,7 +252,7 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
         # bit-identical coordinates on both sides
         assert face_pts <= _exact(a.vertices) and face_pts <= _exact(b.vertices)
 
-        def on_face(mesh):
+        def on_face(mesh, face_pts=face_pts):
             tri = mesh.vertices[mesh.faces]
             keep = [all(tuple(x) in face_pts for x in tr) for tr in tri]
             return {frozenset(tuple(x) for x in tr) for tr in tri[keep]}
@@ -263,6 +263,7 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
     assert seams_seen > 0 or not t.periodic
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("main_takes", [False, True])
 def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
     # with main_takes False the workers build every piece; with True this process builds alongside them
@@ -274,7 +275,7 @@ def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
                        progress=lambda i, n, pid: seen.append((i, n, pid)))
     assert [p.id for p in pooled] == [p.id for p in pieces]
-    for p, q in zip(pieces, pooled):
+    for p, q in zip(pieces, pooled, strict=True):
         assert np.array_equal(p.mesh.vertices, q.mesh.vertices) and np.array_equal(p.mesh.faces, q.mesh.faces)
     assert sorted(i for i, _, _ in seen) == list(range(1, len(pieces) + 1))
     assert {pid for _, _, pid in seen} == {p.id for p in pieces}
@@ -343,7 +344,7 @@ def test_joints_keep_pieces_single_closed_solids(style, space):
     assert joints
     pieces = C.compose(t, fmap, joints, sampling.tolerance, sampling=sampling)
     by_cell = {p.cell: p for p in pieces}
-    for p, q in zip(pieces, plain):
+    for p, q in zip(pieces, plain, strict=True):
         G.check_solid(p.mesh, p.id)
         assert p.body_volume == pytest.approx(q.body_volume)
     for j in joints:

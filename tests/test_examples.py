@@ -4,15 +4,16 @@ import json
 
 import pytest
 import trimesh
-
 from conftest import REPO
 from helpers_build import example_spec
+
 import volpuzzle
 from volpuzzle.io.threemf import read_3mf
 
 SPECS = sorted(p.stem for p in (REPO / "specs").glob("*.yaml"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SPECS)
 def test_example_builds_and_checks(name, tmp_path):
     # the duck's 2.5 mm wall needs ten tolerances across it

@@ -1,7 +1,6 @@
 """The export stage and the 3MF writer: files, read-back, atomicity, determinism."""
 
 import json
-import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -91,7 +90,7 @@ def test_puzzle_3mf_strict_with_colours(tmp_path, pieces):
     objs = read_3mf(target / "puzzle.3mf", strict=True)
     assert [o[0] for o in objs] == [p.id for p in pieces]
     assert np.array_equal(np.array([o[3] for o in objs]), piece_colors(len(pieces)))
-    for (_, v, f, _), p in zip(objs, pieces):
+    for (_, v, f, _), p in zip(objs, pieces, strict=True):
         assert np.allclose(trimesh.Trimesh(v, f).bounds, p.mesh.bounds, atol=1e-4)  # assembled in place
 
 
@@ -115,7 +114,7 @@ def test_force_refuses_a_foreign_folder(tmp_path, pieces):
 
 
 def test_failure_midway_leaves_nothing(tmp_path, pieces, monkeypatch):
-    def boom(*a, **k):
+    def boom(*_args, **_kwargs):
         raise RuntimeError("disk on fire")
 
     monkeypatch.setattr(export_mod, "render_report_md", boom)
@@ -127,7 +126,7 @@ def test_failure_midway_leaves_nothing(tmp_path, pieces, monkeypatch):
 def test_failure_with_force_keeps_the_old_output(tmp_path, pieces, monkeypatch):
     target = write_build(tmp_path / "c", pieces, make_report(pieces))
     old = (target / "report.json").read_bytes()
-    monkeypatch.setattr(export_mod, "write_3mf", lambda *a, **k: (_ for _ in ()).throw(OSError("full")))
+    monkeypatch.setattr(export_mod, "write_3mf", lambda *_a, **_k: (_ for _ in ()).throw(OSError("full")))
     with pytest.raises(ExportError, match="full"):
         write_build(target, pieces, make_report(pieces), force=True)
     assert (target / "report.json").read_bytes() == old and leftovers(tmp_path) == []
@@ -153,7 +152,7 @@ def test_3mf_extras_are_written_off_the_main_thread_and_their_failure_leaves_not
     assert [o[0] for o in read_3mf(target / "plates" / "plate-01.3mf", strict=True)] == ["p0-0-0"]
     assert json.loads((target / "report.json").read_text(encoding="utf-8"))["preview"] == "preview.png"
 
-    def lost(path):
+    def lost(_path):
         raise OSError("plate lost")
 
     with pytest.raises(ExportError, match="plate lost"):

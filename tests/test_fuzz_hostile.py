@@ -9,10 +9,10 @@ from types import SimpleNamespace
 
 import pytest
 import trimesh
+from conftest import DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import DATA
 from volpuzzle.check import check_directory, check_pieces
 from volpuzzle.errors import VolpuzzleError
 from volpuzzle.export import write_build

@@ -17,11 +17,10 @@ import pytest
 import trimesh
 import yaml
 from click.testing import CliRunner
-
-import volpuzzle.cli as cli_mod
-import volpuzzle.export as export_mod
 from conftest import DATA
 from helpers_build import write_spec
+
+import volpuzzle.cli as cli_mod
 from volpuzzle.check import check_directory, check_pieces
 from volpuzzle.cli import cli
 from volpuzzle.errors import ExportError, ModelError, SpecError, VolpuzzleError
@@ -251,6 +250,7 @@ def _mount_tmpfs(path, size="2m"):
     return r.returncode == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["stl", "3mf"])
 def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, fmt):
     disk = tmp_path / "disk"
@@ -302,7 +302,7 @@ def test_an_injected_write_error_is_one_line_and_leaves_nothing(tmp_path, monkey
         def __init__(self, f):
             self.f = f
 
-        def write(self, b):
+        def write(self, _b):
             raise OSError(errno.EDQUOT, "Disk quota exceeded")
 
         def __getattr__(self, k):
@@ -376,7 +376,7 @@ def test_force_never_replaces_the_folder_of_the_spec_and_model(tmp_path):
 def test_sigterm_stops_cleanly_and_leaves_no_temporary_folder(tmp_path):
     pieces = _pieces()
 
-    def terminate(path):
+    def terminate(_path):
         os.kill(os.getpid(), signal.SIGTERM)
 
     with pytest.raises(SystemExit) as e:
@@ -451,7 +451,7 @@ def test_json_model_with_a_5000_digit_number(tmp_path):
 def _gismo_with_entity(encoding):
     text = (DATA / "gismo_cylinder.xml").read_text(encoding="utf-8")
     body = text[text.index("<xml"):]
-    doc = ('<?xml version="1.0" encoding="%s"?>\n<!DOCTYPE xml [<!ENTITY e "0 0 1 1">]>\n' % encoding) + body
+    doc = f'<?xml version="1.0" encoding="{encoding}"?>\n<!DOCTYPE xml [<!ENTITY e "0 0 1 1">]>\n' + body
     return doc.encode(encoding)
 
 
@@ -532,7 +532,7 @@ def test_allow_large_reaches_the_pipeline(tmp_path, monkeypatch, command):
 
     seen = {}
 
-    def fake(spec_path, **kwargs):
+    def fake(_spec_path, **kwargs):
         seen.update(kwargs)
         raise SpecError("stop here")
 

@@ -7,10 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from volpuzzle.info import format_info, model_info
 from volpuzzle.io import load_model_with_meta
 from volpuzzle.spline.volume import Volume
-
-from volpuzzle.info import format_info, model_info
 
 DATA = Path(__file__).parent / "data" / "volumes"
 REFERENCE = {Path(r["file_here"]).name: r

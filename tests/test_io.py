@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import DATA
 from volpuzzle.errors import ModelError, VolpuzzleError
 from volpuzzle.io import load_model, load_model_with_meta, read_patches, save_model
 from volpuzzle.spline.volume import Volume
@@ -121,9 +121,10 @@ def test_geomdl_reader_matches_geomdl_evaluation_rational(tmp_path):
     vol.ctrlpts_size_u, vol.ctrlpts_size_v, vol.ctrlpts_size_w = n
     pts = rng.normal(size=(np.prod(n), 3))
     w = rng.uniform(0.5, 2.0, np.prod(n))
-    vol.ctrlptsw = [list(q * wi) + [wi] for q, wi in zip(pts, w)]
+    vol.ctrlptsw = [list(q * wi) + [wi] for q, wi in zip(pts, w, strict=True)]
     vol.knotvector_u, vol.knotvector_v, vol.knotvector_w = (
-        [0.0] * (pk + 1) + list(np.linspace(0, 1, nk - pk + 1)[1:-1]) + [1.0] * (pk + 1) for nk, pk in zip(n, p))
+        [0.0] * (pk + 1) + list(np.linspace(0, 1, nk - pk + 1)[1:-1]) + [1.0] * (pk + 1)
+        for nk, pk in zip(n, p, strict=True))
     exchange.export_json(vol, str(tmp_path / "g.json"))
     mine = load_model(tmp_path / "g.json")
     uvw = rng.uniform(0, 1, (20, 3))
@@ -160,7 +161,8 @@ def test_gismo_multipatch_ids_give_the_patch_order(tmp_path):
     text = re.sub(r'<patches type="id_range">0 2</patches>', '<patches type="id_index">2 0 1</patches>', text)
     vols = read_patches(write(tmp_path, "mp.xml", text))
     ref = read_patches(DATA / "gismo_water_passage_3p.xml")
-    assert [np.array_equal(a.control_points, b.control_points) for a, b in zip(vols, [ref[2], ref[0], ref[1]])] \
+    assert [np.array_equal(a.control_points, b.control_points)
+            for a, b in zip(vols, [ref[2], ref[0], ref[1]], strict=True)] \
         == [True] * 3
 
 
@@ -234,7 +236,7 @@ def volumes(draw):
     degrees = [draw(st.integers(1, 3)) for _ in range(3)]
     sizes = [p + 1 + draw(st.integers(0, 3)) for p in degrees]
     knots = []
-    for p, n in zip(degrees, sizes):
+    for p, n in zip(degrees, sizes, strict=True):
         inner = np.sort(rng.uniform(-1, 3, n - p - 1))
         knots.append(np.r_[[-1.0] * (p + 1), inner, [3.0] * (p + 1)])
     cps = rng.normal(size=tuple(sizes) + (3,)) * 10 ** rng.uniform(-3, 3)
@@ -250,7 +252,7 @@ def test_save_load_round_trip_is_exact(tmp_path_factory, vol):
     back, meta = load_model_with_meta(d / "a.json")
     assert meta["units"] == "in" and meta["format"] == "volpuzzle-json"
     assert back.degrees == vol.degrees
-    assert all(np.array_equal(a, b) for a, b in zip(back.knots, vol.knots))
+    assert all(np.array_equal(a, b) for a, b in zip(back.knots, vol.knots, strict=True))
     assert np.array_equal(back.control_points, vol.control_points)
     assert (back.weights is None) == (vol.weights is None)
     if vol.weights is not None:

@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from volpuzzle.spline import Volume
-from volpuzzle.spline.jacobian import (Certificate, JacobianSpline, certify_negative, certify_positive,
-                                       jacobian_bezier, orientation)
+from volpuzzle.spline.jacobian import (
+    Certificate,
+    JacobianSpline,
+    certify_negative,
+    certify_positive,
+    jacobian_bezier,
+    orientation,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_spline_volume import random_volume  # noqa: E402
@@ -23,9 +29,10 @@ def weight_function(vol):
 
 def identity_grid(degrees, counts, lo=0.0, hi=1.0):
     knots = [np.r_[[lo] * (p + 1), np.linspace(lo, hi, n - p + 1)[1:-1], [hi] * (p + 1)]
-             for p, n in zip(degrees, counts)]
+             for p, n in zip(degrees, counts, strict=True)]
     # Greville abscissae reproduce the identity map exactly.
-    gre = [np.array([k[i + 1:i + p + 1].mean() for i in range(n)]) for k, p, n in zip(knots, degrees, counts)]
+    gre = [np.array([k[i + 1:i + p + 1].mean() for i in range(n)])
+           for k, p, n in zip(knots, degrees, counts, strict=True)]
     cp = np.stack(np.meshgrid(*gre, indexing="ij"), axis=-1)
     return knots, cp
 
@@ -55,7 +62,6 @@ def test_coefficients_bound_1e5_samples(rational):
     if rational:
         det = det * weight_function(vol).evaluate(uvw)[:, 0] ** 4
     assert js.min <= det.min() and js.max >= det.max()
-    i = np.argmin(det)
     assert js.min <= js.evaluate(js.argmin_uvw[None])[0] + 1e-12 * js.scale
 
 
@@ -80,7 +86,8 @@ def test_planted_fold_is_disproved_with_its_place():
 
 
 def near_fold():
-    """x(u) with control points 0, 0.9, 0.1, 1: x' > 0 (min 0.075) but its Bernstein coefficients are not all positive."""
+    """x(u) with control points 0, 0.9, 0.1, 1: x' > 0 (min 0.075)
+    but its Bernstein coefficients are not all positive."""
     knots, cp = identity_grid((3, 1, 1), (4, 2, 2))
     cp = cp.copy()
     cp[:, :, :, 0] = np.array([0.0, 0.9, 0.1, 1.0])[:, None, None]

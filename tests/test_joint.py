@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shapes import ring
 
 from volpuzzle import joint as J
-from volpuzzle.errors import SpecError
+from volpuzzle.errors import GeometryError, SpecError
 from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
-from shapes import ring
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Small models built here (the real builtins live in volpuzzle.models)
@@ -34,9 +34,9 @@ def _bent(mirror=False):
     k = 0.5523
     arc = np.array([[1, 0], [1, k], [k, 1], [0, 1]], float)
     cp = np.zeros((4, 2, 2, 3))
-    for i, j, l in np.ndindex(4, 2, 2):
+    for i, j, m in np.ndindex(4, 2, 2):
         r = (20.0, 50.0)[j]
-        cp[i, j, l] = [r * arc[i, 0], r * arc[i, 1], 30.0 * l]
+        cp[i, j, m] = [r * arc[i, 0], r * arc[i, 1], 30.0 * m]
     if mirror:
         cp[..., 0] *= -1
     return Volume((3, 1, 1), ([0, 0, 0, 0, 1, 1, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1]), cp)
@@ -242,7 +242,7 @@ def test_dowel_holes_in_both_pieces_hold_the_dowel():
     t = _tiling(vol, (2, 1, 1))
     (j,) = J.plan_joints(t, _map(vol), _spec(style="dowel", radius=2.0, length=5.0))
     assert [r for _, r in J.pieces_joints([j], j.pin_cell)] == ["hole"]
-    with pytest.raises(Exception):
+    with pytest.raises(GeometryError, match="style dowel has no pin"):
         J.pin_solid(j)
     dowel = J.dowel_solid(j)
     holes = J.hole_solid(j, j.pin_cell) + J.hole_solid(j, j.hole_cell)

@@ -6,15 +6,15 @@ from collections import Counter
 
 import numpy as np
 import pytest
-
 from conftest import REPO
 from helpers_build import example_spec, write_spec
+from test_assembly import _bent, _built, _map, _warp
+from test_joint import _body, _cell_solids, _vol
+
 from volpuzzle import joint as J
 from volpuzzle.errors import GeometryError, SpecError
 from volpuzzle.pipeline import prepare
 from volpuzzle.spec import load_spec
-from test_assembly import _bent, _built, _map, _warp
-from test_joint import _body, _cell_solids, _vol
 
 
 def _prepared(name, tmp_path, **over):
@@ -99,7 +99,7 @@ def test_welded_without_opt_in_fails_the_build_and_with_it_warns(monkeypatch, ca
 
     t, plan, joints, pieces = _built("box")
     stuck = sorted(pieces)[:2]
-    monkeypatch.setattr(A, "verify_disassembly", lambda *a, **k: {
+    monkeypatch.setattr(A, "verify_disassembly", lambda *_a, **_k: {
         "assembly_order": sorted(pieces), "steps": [], "welded": True, "stuck": stuck, "booleans": 0, "seconds": 0})
     with pytest.raises(GeometryError) as e:
         pipeline._assembly(plan, [], joints, pipeline.Timer(), None)

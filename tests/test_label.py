@@ -2,7 +2,7 @@
 (one closed solid, the expected volume, only near the chosen face, >= 0.4 mm deep also on a curved face)."""
 
 import time
-from functools import lru_cache
+from functools import cache
 
 import manifold3d as m3
 import numpy as np
@@ -96,7 +96,7 @@ def _box_model():
     return Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _box_puzzle(v_joint=True):
     """Piece p0-0-0 of a 2 x 2 x 1 box puzzle; without v_joint its v-face has no joint (as assembly.py may decide)."""
     vol = _box_model()
@@ -107,7 +107,7 @@ def _box_puzzle(v_joint=True):
         joints = [j for j in joints if not (j.axis == 1 and tuple(j.pin_cell) == (0, 0, 0))]
     sampling = C.sample_parameters(tiling, fmap, 0.5)  # flat faces: any tolerance is exact
     cell = tiling.cell((0, 0, 0))
-    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, joints).mesh, cell.id)
+    body = G.from_trimesh(C.build_piece(cell, sampling, fmap, joints).mesh, cell.id)
     return tiling, fmap, joints, cell, body
 
 
@@ -211,7 +211,7 @@ def test_curved_face_keeps_the_depth_under_all_the_text():
     tiling = tile(vol, (1, 2, 1))  # the inner face is the curved surface at mid radius
     cell = tiling.cell((0, 1, 0))  # the inner shell: its labelled face is convex
     sampling = C.sample_parameters(tiling, fmap, 0.05)
-    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, []).mesh, cell.id)
+    body = G.from_trimesh(C.build_piece(cell, sampling, fmap, []).mesh, cell.id)
     site = L.choose_label_site(cell, tiling, fmap, [])
     assert site is not None and site.face == (1, -1)
     # outward from the inner shell through its outer face: away from the arc's centre
@@ -239,7 +239,7 @@ def test_curved_face_keeps_the_depth_under_all_the_text():
     engraved = G.to_trimesh(out)
     d = engraved.vertices - site.center
     core = cs.offset(-0.05, m3.JoinType.Round)
-    under = np.array([_covers(core, x, y, 0.01) for x, y in zip(d @ site.right, d @ site.up)])
+    under = np.array([_covers(core, x, y, 0.01) for x, y in zip(d @ site.right, d @ site.up, strict=True)])
     z = d @ site.normal
     under &= (z < site.heights.max() + 1e-6) & (z > site.heights.min() - 2.0)  # not the far side of the piece
     _, dist, _ = trimesh.proximity.closest_point(skin, engraved.vertices[under])
@@ -271,7 +271,7 @@ def test_label_across_a_periodic_seam():
     assert np.dot(site.normal, jac[0][:, 2]) < 0  # out of the cell's min-w face, against growing w
     assert abs(np.dot(site.center - x0[0], site.normal)) < 1e-6  # on the seam's plane
     sampling = C.sample_parameters(tiling, fmap, 0.5)
-    body = G.from_trimesh(C.build_piece(cell, tiling, sampling, fmap, joints).mesh, cell.id)
+    body = G.from_trimesh(C.build_piece(cell, sampling, fmap, joints).mesh, cell.id)
     _check_engraving(body, L.engrave(body, site, what=cell.id), site, joints, cell)
 
 
@@ -320,7 +320,8 @@ def test_outline_fast_path_matches_segment_by_segment():
         fast, box = L._outline(text)
         slow, slow_box = L._outline_slow(TextPath((0.0, 0.0), text, size=1.0, prop=L._font()))
         assert len(fast) == len(slow) and np.allclose(box, slow_box, rtol=0, atol=1e-12)
-        assert all(a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-12) for a, b in zip(fast, slow))
+        assert all(a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-12)
+                   for a, b in zip(fast, slow, strict=True))
 
 
 def test_pruned_heights_equal_the_brute_force_minimum():
@@ -358,7 +359,7 @@ def test_measured_heights_match_one_ray_per_sample():
     fmap = Map(vol)
     tiling = tile(vol, (1, 2, 1))
     cell = tiling.cell((0, 1, 0))
-    body = G.from_trimesh(C.build_piece(cell, tiling, C.sample_parameters(tiling, fmap, 0.05), fmap, []).mesh, cell.id)
+    body = G.from_trimesh(C.build_piece(cell, C.sample_parameters(tiling, fmap, 0.05), fmap, []).mesh, cell.id)
     site = L.choose_label_site(cell, tiling, fmap, [])
     got = L._measured_heights(body, site)
     frame, want = site.frame(), np.array(site.heights, dtype=float)

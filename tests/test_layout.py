@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import trimesh
+from helpers_build import write_spec
 from PIL import Image
 
-from helpers_build import write_spec
 import volpuzzle
 from volpuzzle.errors import SpecError
 from volpuzzle.io.threemf import read_3mf
@@ -78,6 +78,7 @@ def test_preview_is_a_wide_picture(tmp_path):
     assert (np.abs(px.astype(int) - [200, 60, 60]).sum(1) < 120).any()  # the pieces' colours are in it
 
 
+@pytest.mark.slow
 def test_preview_paints_the_nearer_piece_over_the_farther(tmp_path):
     from volpuzzle.preview import _view_axes
 
@@ -94,6 +95,7 @@ def test_preview_paints_the_nearer_piece_over_the_farther(tmp_path):
         assert (px[:5, :5] == 255).all()  # white background
 
 
+@pytest.mark.slow
 def test_build_writes_plates_every_piece_once_and_strict_3mf(tmp_path):
     spec = write_spec(tmp_path, {"name": "plates", "model": {"builtin": {"type": "quarter-torus"}},
                                  "grid": [2, 1, 2], "output": {"directory": str(tmp_path / "out"),
@@ -140,6 +142,7 @@ def test_pin_triangles_cover_the_pin_and_nothing_else():
     assert pin_triangles([piece], [SimpleNamespace(**{**vars(joint), "pin_cell": (1, 0, 0)})]) == {}
 
 
+@pytest.mark.slow
 def test_3mf_pieces_with_a_pin_material_read_back_strictly(tmp_path):
     spec = write_spec(tmp_path, {"name": "m3", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 1],
                                  "output": {"directory": str(tmp_path / "out"), "tolerance": 0.3, "format": "3mf"}})

@@ -7,9 +7,9 @@ import pytest
 import trimesh
 import yaml
 
+from volpuzzle.errors import SpecError
 from volpuzzle.pipeline import build
 from volpuzzle.spec import load_spec
-from volpuzzle.errors import SpecError
 
 
 def knot_tube(p=2, q=3, scale=20.0, tube=5.0, n=240, k=16):
@@ -80,7 +80,7 @@ def test_balanced_splits_are_the_default_for_meshes_only(tmp_path):
         load_spec(tmp_path / "b.yaml")
 
 
-def test_balanced_splits_even_out_the_mesh(tmp_path):
+def test_balanced_splits_even_out_the_mesh():
     from volpuzzle.cage import make_cage, mesh_mass
     from volpuzzle.mapping import Map
     from volpuzzle.spec import CageSpec

@@ -1,13 +1,12 @@
 """Pipeline behaviour on small specs: determinism, pieces counts, report contents, refusal of bad builds."""
 
-import json
 
 import numpy as np
 import pytest
-
 from helpers_build import example_spec, write_spec
+
 import volpuzzle
-from volpuzzle.errors import ExportError, GeometryError, ModelError, SpecError
+from volpuzzle.errors import ExportError, GeometryError, SpecError
 
 
 def small_box_spec(tmp_path, **over):
@@ -22,6 +21,7 @@ def small_box_spec(tmp_path, **over):
     return write_spec(tmp_path, spec)
 
 
+@pytest.mark.slow
 def test_report_has_every_contract_key(tmp_path):
     report = volpuzzle.build(small_box_spec(tmp_path), jobs=1)
     for key in ("volpuzzle_version", "spec", "model", "randomize", "pieces", "joints", "checks", "plates",
@@ -38,17 +38,19 @@ def test_report_has_every_contract_key(tmp_path):
     assert report["spec"]["output"]["tolerance"] == 0.5
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes(tmp_path):
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     a = volpuzzle.build(small_box_spec(tmp_path / "a"), jobs=1)
     b = volpuzzle.build(small_box_spec(tmp_path / "b"), jobs=2)
-    for pa, pb in zip(a["pieces"], b["pieces"]):
+    for pa, pb in zip(a["pieces"], b["pieces"], strict=True):
         fa = (tmp_path / "a" / "out" / pa["file"]).read_bytes()
         fb = (tmp_path / "b" / "out" / pb["file"]).read_bytes()
         assert fa == fb
 
 
+@pytest.mark.slow
 def test_existing_output_needs_force(tmp_path):
     spec = small_box_spec(tmp_path)
     volpuzzle.build(spec, jobs=1)
@@ -67,7 +69,8 @@ def test_amplitude_that_folds_names_safe_amplitude(tmp_path):
 
 def test_pin_that_does_not_fit(tmp_path):
     spec = small_box_spec(tmp_path, joints={"radius": 40, "min_radius": 40})
-    with pytest.raises(SpecError, match=r"joints: piece p\S+ gets no joint.*; between .*expected joints.min_radius at most"):
+    with pytest.raises(SpecError,
+                       match=r"joints: piece p\S+ gets no joint.*; between .*expected joints.min_radius at most"):
         volpuzzle.build(spec, jobs=1)
     assert not (tmp_path / "out").exists()
 
@@ -85,6 +88,7 @@ def test_unknown_builtin_is_a_spec_error(tmp_path):
         volpuzzle.build(spec, jobs=1)
 
 
+@pytest.mark.slow
 def test_periodic_twisted_torus_small(tmp_path):
     spec = example_spec("twisted-torus", tmp_path, tolerance=0.5, grid=[2, 2, 4])
     report = volpuzzle.build(spec, jobs=1)

@@ -4,11 +4,10 @@ print orientation, the bed margin, labels on every piece, and the preview's dept
 import numpy as np
 import pytest
 import trimesh
+from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small analytic models)
 
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
-
-from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small analytic models)
 from volpuzzle.mapping import Map
 from volpuzzle.tile import tile
 
@@ -63,6 +62,7 @@ def test_no_clearance_on_a_single_cell():
 # preview
 
 
+@pytest.mark.slow
 def test_preview_hides_a_box_inside_another(tmp_path):
     from PIL import Image
 
@@ -79,6 +79,7 @@ def test_preview_hides_a_box_inside_another(tmp_path):
         assert (px[:, :, 0] > px[:, :, 2] + 60).sum() > 1000  # the outer box is there
 
 
+@pytest.mark.slow
 def test_preview_takes_a_colour_per_triangle_and_draws_a_plate(tmp_path):
     from PIL import Image
 

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from volpuzzle.errors import SpecError
 from volpuzzle.randomize import family_from_spec, warp_family
 from volpuzzle.spec import RandomizeSpec
-from volpuzzle.spline.knots import greville, uniform_knots
 from volpuzzle.spline import Volume
+from volpuzzle.spline.knots import greville, uniform_knots
 from volpuzzle.spline.seams import Seam
 
 DOMAIN = np.array([[0.0, -1.0, 2.0], [1.0, 3.0, 2.5]])  # unequal extents catch mixed-up axes

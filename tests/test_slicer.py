@@ -5,12 +5,13 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import REPO
 from helpers_build import write_spec
+
 import volpuzzle
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("prusa-slicer") is None,
                     reason="prusa-slicer is not installed; `make slicer-check` installs it from Debian's packages")
 def test_prusaslicer_slices_every_plate_without_supports_or_warnings(tmp_path):

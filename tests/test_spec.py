@@ -11,8 +11,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from volpuzzle.errors import SpecError
-from volpuzzle.spec import (CageSpec, JointSpec, OutputSpec, RandomizeSpec, Spec, load_spec, load_spec_text,
-                            spec_to_dict, with_overrides)
+from volpuzzle.spec import (
+    CageSpec,
+    JointSpec,
+    OutputSpec,
+    RandomizeSpec,
+    Spec,
+    load_spec,
+    load_spec_text,
+    spec_to_dict,
+    with_overrides,
+)
 
 PROBLEM_RE = re.compile(r"^\S.*?: .+ \(got .+, expected .+\)$", re.S)
 
@@ -305,7 +314,8 @@ def test_name_with_other_characters(folder):
 
 def test_model_with_two_sources(folder):
     p = only_problem(folder, merged({"model": {"builtin": {"type": "duck-shell"}}}), "model")
-    assert "more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh, shell)" in p
+    assert ("more than one model source (got nurbs and builtin, expected exactly one of nurbs, builtin, mesh, shell)"
+            in p)
 
 
 def test_model_with_no_source(folder):
@@ -538,6 +548,7 @@ _garbage = st.fixed_dictionaries({}, optional={
     "junk": _values, **_sections})
 
 
+@pytest.mark.slow
 @settings(max_examples=80, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(_garbage)

@@ -2,7 +2,8 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volpuzzle.errors import ModelError
 from volpuzzle.spline import Volume
@@ -11,7 +12,7 @@ from volpuzzle.spline import Volume
 def random_volume(rng, degrees, counts, rational, lo=-2.0, hi=3.0, repeat=True):
     """Knots off [0, 1] with, where room allows, one repeated interior knot."""
     knots = []
-    for p, n in zip(degrees, counts):
+    for p, n in zip(degrees, counts, strict=True):
         inner = np.sort(rng.uniform(lo, hi, n - p - 1))
         if repeat and len(inner) >= 2 and p >= 2:
             inner[1] = inner[0]
@@ -87,7 +88,8 @@ def test_clamps_outside_domain_and_nan():
 @pytest.mark.parametrize("rational", [False, True])
 @pytest.mark.parametrize("degrees,counts", [((3, 3, 3), (7, 24, 5)), ((2, 3, 1), (21, 6, 3)), ((2, 5, 4), (4, 8, 30))])
 def test_compiled_kernels_match_numpy(degrees, counts, rational):
-    # the tricubic kernel, the general one and the one for degree > 3, in the serial (small batch) and parallel (large batch) runs, with
+    # the tricubic kernel, the general one and the one for degree > 3, in the serial (small batch) and parallel
+    # (large batch) runs, with
     # few elements (branch-free search) and many (binary search); NaN stays NaN and outside points clamp
     rng = np.random.default_rng(11)
     vol = random_volume(rng, degrees, counts, rational)
@@ -158,8 +160,9 @@ def test_bezier_elements_reproduce_the_volume(rational):
     assert hp.shape[3:] == (4, 3, 2, 4)
     uvw = rng.uniform(-2, 3, (100, 3))
     idx = [np.clip(np.searchsorted(b, uvw[:, a], side="right") - 1, 0, len(b) - 2) for a, b in enumerate(breaks)]
-    loc = [(uvw[:, a] - b[i]) / (b[i + 1] - b[i]) for a, (b, i) in enumerate(zip(breaks, idx))]
-    bern = [np.stack([comb(p, j) * s**j * (1 - s)**(p - j) for j in range(p + 1)], 1) for p, s in zip(vol.degrees, loc)]
+    loc = [(uvw[:, a] - b[i]) / (b[i + 1] - b[i]) for a, (b, i) in enumerate(zip(breaks, idx, strict=True))]
+    bern = [np.stack([comb(p, j) * s**j * (1 - s)**(p - j) for j in range(p + 1)], 1)
+            for p, s in zip(vol.degrees, loc, strict=True)]
     h = np.einsum("ni,nj,nk,nijkd->nd", *bern, hp[idx[0], idx[1], idx[2]])
     np.testing.assert_allclose(h[:, :3] / h[:, 3:], vol.evaluate(uvw), atol=1e-11)
 

@@ -111,7 +111,7 @@ def test_derivatives_match_differences_and_geomdl():
     hp = s.homogeneous()
     g.ctrlptsw = hp.reshape(-1, 4).tolist()  # v fastest, weighted
     g.knotvector_u, g.knotvector_v = s.knots[0].tolist(), s.knots[1].tolist()
-    for p, q in zip(uv[:5], d[:5]):
+    for p, q in zip(uv[:5], d[:5], strict=True):
         skl = np.array(g.derivatives(float(p[0]), float(p[1]), order=2))
         assert np.allclose(skl[0, 0], q[0, 0], atol=1e-10)
         assert np.allclose(skl[1, 0], q[1, 0], atol=1e-8)
@@ -135,7 +135,7 @@ def test_duck_file_poles_and_seam():
     assert np.allclose(seam[0], [3.23694087, 0.0131926, 1.63632436], atol=1e-7)
 
 
-def test_nurbs_file_as_a_volume_points_to_shell(tmp_path):
+def test_nurbs_file_as_a_volume_points_to_shell():
     from volpuzzle.io import load_model
 
     with pytest.raises(ModelError, match="model: {shell:"):

@@ -72,6 +72,7 @@ def test_texture_spec_key(tmp_path):
                        tmp_path / "s.yaml")
 
 
+@pytest.mark.slow
 def test_stl_output_says_it_cannot_hold_colour(tmp_path, capsys):
     import dataclasses
 

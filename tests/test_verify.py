@@ -8,10 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volpuzzle.errors import GeometryError, ModelError
-
 from volpuzzle.randomize import warp_family
-from volpuzzle.spline.knots import uniform_knots
 from volpuzzle.spline import Volume
+from volpuzzle.spline.knots import uniform_knots
 from volpuzzle.verify import safe_amplitude, verify_model, verify_warp
 
 UNIT = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
@@ -47,7 +46,8 @@ def test_large_amplitude_names_a_safe_one():
     with pytest.raises(GeometryError) as err:
         verify_warp(fam, 3.0)
     msg = str(err.value)
-    m = re.search(r"^randomize\.amplitude: 3 (folds the map R|flattens the map R|cannot be certified).*smallest Jacobian coefficient "
+    m = re.search(r"^randomize\.amplitude: 3 (folds the map R|flattens the map R|cannot be certified)"
+                  r".*smallest Jacobian coefficient "
                   r"(-?[0-9.e+-]+) at uvw \(([^)]*)\).*at most ([0-9.e+-]+) certifies.*\(got 3, expected <= \4\)$", msg)
     assert m, msg
     assert float(m.group(2)) <= 0
@@ -108,7 +108,8 @@ def test_model_left_handed_mirror_is_valid():
 def test_model_fold_is_refused_with_its_place():
     v = _bent_box(n=5)
     cp = np.array(v.control_points)
-    cp[2, 2, 2, 0] = cp[0, 2, 2, 0] - 150.0  # drag the middle control point far back past the u = 0 face: a planted fold
+    cp[2, 2, 2, 0] = cp[0, 2, 2, 0] - 150.0
+    # drag the middle control point far back past the u = 0 face: a planted fold
     folded = Volume(v.degrees, v.knots, cp)
     d = _det(folded, np.random.default_rng(0).uniform(size=(20_000, 3)))
     assert d.min() < 0 < d.max()  # the plant really folds

@@ -37,9 +37,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .joint import joint_graph, piece_id
+from .geometry import is_ok
+from .grid import AXES, piece_id
+from .joint import joint_graph
 
-AXES = "uvw"
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
 
 
@@ -105,7 +106,7 @@ def _face_normals(tiling, fmap, numbers):
     _, jac = fmap.evaluate_with_jacobian(np.array(uvw))
     out, area = [], []
     orient = int(getattr(fmap, "orientation", 1) or 1)
-    for n, j, dp in zip(numbers, jac, dpar):
+    for n, j, dp in zip(numbers, jac, dpar, strict=True):
         a = tiling.faces[n].axis
         b, c = (a + 1) % 3, (a + 2) % 3
         nrm = np.cross(j[:, b], j[:, c])
@@ -139,7 +140,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
                 and (tuple(f.lower) in mv or tuple(f.lower) in fixed)
                 and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
 
-    def choose(cands, axis, sign, lo_cells, moving=(), prefer_seam=False):
+    def choose(cands, axis, lo_cells, moving=(), prefer_seam=False):
         """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known.
         Normals are compared as seen from the fixed block (a seam face has the moving block on its lower side)."""
         if not cands:
@@ -152,7 +153,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             mids.append(sum(abs(c[x] - lo_cells[x]) for x in others))
         normals, area = _face_normals(tiling, fmap, cands)
         if normals is None:
-            key = [(-(prefer_seam and faces[n].seam is not None), m) for n, m in zip(cands, mids)]
+            key = [(-(prefer_seam and faces[n].seam is not None), m) for n, m in zip(cands, mids, strict=True)]
             best = min(range(len(cands)), key=lambda k: key[k])
             return [cands[best]]
         mv = set(moving)
@@ -181,7 +182,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             moving = [c for c in cells if c[a] >= p]
             cand = [n for n in crossing(moving, set(fixed)) if faces[n].axis == a]
             mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
-            chosen = choose(cand, a, +1, mid_lo, moving, prefer_seam=True)
+            chosen = choose(cand, a, mid_lo, moving, prefer_seam=True)
             jointed.extend(chosen)
             split(fixed, open_axes | {a})
             split(moving, open_axes | {a})
@@ -201,7 +202,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
         fixed, moving = _halves(cells, a)
         cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
-        chosen = choose(cand, a, +1, mid_lo)
+        chosen = choose(cand, a, mid_lo)
         jointed.extend(chosen)
         split(fixed, open_axes)
         split(moving, open_axes)
@@ -348,10 +349,8 @@ def _as_manifold(mesh, pid):
 
 
 def _overlap(a, b):
-    import manifold3d
-
     inter = a ^ b
-    if inter.status() != manifold3d.Error.NoError:
+    if not is_ok(inter):
         raise GeometryError(f"assembly check: intersection failed (status {inter.status().name})")
     return float(inter.volume())
 
@@ -398,7 +397,7 @@ def _chunk_extents(verts, faces, chunks=8):
     vid, kid = vid[order], kid[order]
     bounds = np.flatnonzero(np.r_[True, kid[1:] != kid[:-1], True])
     out = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         lo = np.full(len(_DIRS), np.inf)
         hi = np.full(len(_DIRS), -np.inf)
         for c0 in range(a, b, 8192):  # blocks keep a large piece's projections small
@@ -551,7 +550,7 @@ def _candidates(block, planned, max_tries, groups=True):
     return uniq[:max_tries]
 
 
-def verify_disassembly(pieces, joints, plan, fmap=None, limit_frac=1e-4, fine=None, max_tries=24, groups=True):
+def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True):
     """Replay the plan on the real meshes -> dict.
 
     pieces: {id: trimesh mesh in mm} (or a list of compose.Piece); joints: volpuzzle.joint.Joint list (the ones built);

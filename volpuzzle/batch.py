@@ -141,7 +141,7 @@ def summary_table(results):
         rows.append((r.name, "ok" if r.ok else "FAILED", "" if r.pieces is None else str(r.pieces),
                      f"{r.seconds:.1f}", r.directory if r.ok else r.error))
     widths = [max(len(row[c]) for row in rows) for c in range(4)]
-    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4] for row in rows]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths, strict=True)) + "  " + row[4] for row in rows]
     failed = sum(not r.ok for r in results)
     lines.append(f"{len(results) - failed} built, {failed} failed")
     return "\n".join(lines)

@@ -15,6 +15,8 @@ import numpy as np
 import trimesh
 
 from .errors import ModelError
+from .grid import frame_from_direction
+from .spline.knots import greville, uniform_knots
 from .spline.volume import Volume
 
 __all__ = ["make_cage", "check_inside", "cage_boundary", "mesh_mass", "PERIODIC_AXES"]
@@ -29,16 +31,6 @@ _CIRCLE_KNOTS = np.array([0, 0, 0, .25, .25, .5, .5, .75, .75, 1, 1, 1])
 _HALF_RZ = np.array([[0, 1], [1, 1], [1, 0], [1, -1], [0, -1]], float)
 _HALF_W = np.array([1, _S, 1, _S, 1])
 _HALF_KNOTS = np.array([0, 0, 0, .5, .5, 1, 1, 1])
-
-
-def _uniform_knots(n, p):
-    inner = np.linspace(0.0, 1.0, n - p + 1)[1:-1]
-    return np.concatenate([np.zeros(p + 1), inner, np.ones(p + 1)])
-
-
-def _greville(knots, p):
-    n = len(knots) - p - 1
-    return np.array([knots[i + 1:i + p + 1].mean() for i in range(n)])
 
 
 def _hull_points(mesh):
@@ -121,9 +113,9 @@ def _box(mesh, pad, cps, balance_grid=None):
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
     degrees = tuple(1 if cps is None else min(3, k - 1) for k in n)
-    knots = tuple(_uniform_knots(k, p) for k, p in zip(n, degrees))
+    knots = tuple(uniform_knots(k, degree=p) for k, p in zip(n, degrees, strict=True))
     # control points at the Greville abscissae: the spline reproduces the linear map exactly (linear precision)
-    g = [(_greville(kn, p) * 2 - 1) * h for kn, p, h in zip(knots, degrees, half)]
+    g = [(greville(kn, p) * 2 - 1) * h for kn, p, h in zip(knots, degrees, half, strict=True)]
     local = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1)
     cp = center + local @ axes
     vol = Volume(degrees, knots, cp)
@@ -137,15 +129,6 @@ def _min_circle(points2d):
     return np.asarray(c, float), float(r)
 
 
-def _frame_from_axis(a):
-    a = a / np.linalg.norm(a)
-    helper = np.eye(3)[int(np.argmin(np.abs(a)))]
-    e1 = np.cross(helper, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(a, e1)
-    return e1, e2, a  # right-handed: e1 x e2 = a
-
-
 def _cylinder(mesh, pad):
     pts = _hull_points(mesh)
     cands = [np.eye(3)[k] for k in range(3)]
@@ -156,7 +139,8 @@ def _cylinder(mesh, pad):
         pass
     best = None
     for a in cands:
-        e1, e2, a = _frame_from_axis(np.asarray(a, float))
+        a = np.asarray(a, float)
+        e1, e2, a = frame_from_direction(a / np.linalg.norm(a))
         p2 = np.stack([pts @ e1, pts @ e2], axis=1)
         c2, r = _min_circle(p2)
         h = pts @ a
@@ -241,7 +225,11 @@ def _samples(vol, a, n_min=8, per_span=6, n_max=64):
 
 def _weld(v, f, tol):
     """Merge vertices equal up to tol (a collapsed face puts thousands on one point, where a pairwise search would
-    crawl), drop triangles that lose an edge, and cancel pairs of opposite triangles (the two faces of a seam)."""
+    crawl), drop triangles that lose an edge, and cancel pairs of opposite triangles (the two faces of a seam).
+
+    Not geometry.weld on purpose: that one clusters by distance (a KD-tree's close pairs, slow on such a pile) and
+    keeps the vertices in order; this one snaps to a tol grid and drops unused vertices, and the cage boundary's
+    vertices and faces (hence check_inside's answers) depend on that."""
     key = np.round(v / tol).astype(np.int64)
     _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
     f = inv.ravel()[f]

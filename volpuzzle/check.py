@@ -10,13 +10,14 @@ import json
 import math
 import time
 import weakref
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence, Tuple
 
 import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
+from .geometry import is_ok
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
@@ -96,10 +97,8 @@ def piece_solid(mesh: trimesh.Trimesh, pid: str):
 
 def overlap_volume(a, b) -> float:
     """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
-    import manifold3d
-
     inter = a ^ b
-    if inter.status() != manifold3d.Error.NoError:
+    if not is_ok(inter):
         raise GeometryError(f"intersection failed with status {inter.status()}")
     return float(inter.volume())
 
@@ -157,7 +156,7 @@ def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: i
     return [(int(i), int(j)) for i, j in pairs]
 
 
-def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
+def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
                  volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3,
                  exact_overlaps: bool = False) -> dict:
     """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
@@ -173,7 +172,7 @@ def check_pieces(pieces: Sequence[Tuple[str, trimesh.Trimesh]], expected_volume_
     failures = []
     closed_failures = []
     volumes = np.zeros(len(meshes))
-    for k, (pid, mesh) in enumerate(zip(ids, meshes)):
+    for k, (pid, mesh) in enumerate(zip(ids, meshes, strict=True)):
         problem = closed_problem(mesh)
         if problem:
             closed_failures.append(pid)
@@ -249,7 +248,7 @@ _REPORT_MAX_BYTES = 64 << 20  # report.json of a 10k-piece puzzle is ~20 MB
 _PIECE_MAX_BYTES = 1 << 30
 
 
-def _inside_file(directory: Path, rel, field: str, max_bytes: int) -> Tuple[Path, bytes]:
+def _inside_file(directory: Path, rel, field: str, max_bytes: int) -> tuple[Path, bytes]:
     """(path, bytes) of the regular file `rel` inside directory, read without following any symlink; raises
     VolpuzzleError naming `field` for anything else: an absolute path, '..', a symlink anywhere on the way, a
     FIFO or device, a file too large. A checker run on a folder someone sent must read that folder only."""
@@ -429,7 +428,7 @@ def _cylinder(center, direction, radius, start, stop, segments=48):
     rot = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
     rot[:3, 3] = np.asarray(center, float) + start * d
     cyl = manifold3d.Manifold.cylinder(stop - start, radius, radius, segments).transform(rot[:3, :])
-    if cyl.status() != manifold3d.Error.NoError or cyl.is_empty():
+    if not is_ok(cyl) or cyl.is_empty():
         raise GeometryError(f"joint check: cannot build a test cylinder of radius {radius:g} mm ({cyl.status()})")
     return cyl
 
@@ -686,7 +685,8 @@ def check_printability(report: dict, meshes: dict) -> dict:
     return {"bed_contact_mm2": contact, "min_bed_contact_mm2": min(contact.values()) if contact else None,
             "pieces_under_bed_minimum": under, "min_face_gap_mm": None if gap is None else round(gap, 4),
             "face_gap_pair": pair,
-            "median_face_gap_mm": None if median is None else round(median, 4), "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
+            "median_face_gap_mm": None if median is None else round(median, 4),
+            "unlabelled": unlabelled, "pins": pins, "pins_up": pins_up,
             "failures": failures, "warnings": warnings}
 
 

@@ -14,7 +14,8 @@ from .errors import VolpuzzleError
 
 
 def _run(func, *args, **kwargs):
-    """Expected failures become one line on stderr and exit 1; a bug says so in one line (VOLPUZZLE_DEBUG=1 for more)."""
+    """Expected failures become one line on stderr and exit 1; a bug says so in one line
+    (VOLPUZZLE_DEBUG=1 for more)."""
     previous = _stop_on_sigterm()
     try:
         return func(*args, **kwargs)
@@ -49,7 +50,7 @@ class _Terminated(BaseException):
 
 def _stop_on_sigterm():
     """Make SIGTERM unwind the stack like SIGINT -> the previous handler (None when not on the main thread)."""
-    def handler(signum, frame):
+    def handler(_signum, _frame):
         raise _Terminated()
 
     try:
@@ -71,7 +72,8 @@ def cli():
 
 @cli.command()
 @click.argument("spec", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", "output_dir", type=click.Path(file_okay=False), help="Output folder (default: out/<name>).")
+@click.option("-o", "--output", "output_dir", type=click.Path(file_okay=False),
+              help="Output folder (default: out/<name>).")
 @click.option("--format", "fmt", type=click.Choice(["stl", "3mf"]), help="File format of the pieces.")
 @click.option("--seed", type=int, help="Override randomize.seed.")
 @click.option("--jobs", type=click.IntRange(min=1), help="Pieces built in parallel (default: the number of cores).")

@@ -26,8 +26,8 @@ from scipy.spatial import Delaunay
 
 from . import geometry
 from .errors import GeometryError
+from .grid import AXES
 
-AXES = "uvw"
 # Measured points (edge midpoints and quarter points, triangle centroids) are held to this fraction of the
 # tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
 _SAFETY = 0.8
@@ -268,12 +268,13 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
         t, _ = _merge(np.array([0.0, 0.5, 1.0]), kn, 1e-7)  # a knot a hair off a break or the midpoint is that
         t_list.append(t)
         e_list.append(np.full(len(t), e))
-    uvw = np.concatenate([_edge_params(k, breaks, t) for k, t in zip(keys, t_list)]) if keys else np.empty((0, 3))
+    uvw = (np.concatenate([_edge_params(k, breaks, t) for k, t in zip(keys, t_list, strict=True)])
+           if keys else np.empty((0, 3)))
     x = fmap.evaluate(uvw) if len(uvw) else np.empty((0, 3))
     # intervals: edge, t0, t1, x0, x1
     ends = np.cumsum([len(t) for t in t_list])
     first = ends - np.array([len(t) for t in t_list], dtype=int)
-    sel0 = np.concatenate([np.arange(f, e - 1) for f, e in zip(first, ends)]) if keys else np.empty(0, int)
+    sel0 = np.concatenate([np.arange(f, e - 1) for f, e in zip(first, ends, strict=True)]) if keys else np.empty(0, int)
     T = np.concatenate(t_list) if keys else np.empty(0)
     E = np.concatenate(e_list) if keys else np.empty(0, int)
     ie, t0, t1, x0, x1 = E[sel0], T[sel0], T[sel0 + 1], x[sel0], x[sel0 + 1]
@@ -348,7 +349,7 @@ def _edge_ref(lat, axis, start, ts, ids):
     return (1.0 - t[::-1], i[::-1]) if rev else (t, i)
 
 
-def _face_edges(lat, key):
+def _face_edges(key):
     """The four edges of a face in its own frame: bottom (t=0), right (s=1), top (t=1), left (s=0), as
     (axis, start) pairs; each runs in increasing s or t."""
     a, g = key[0], list(key[1:])
@@ -362,7 +363,7 @@ def _face_edges(lat, key):
 def _chains(lat, key, ts, ids):
     """-> four (st (k, 2), ids (k,)) chains, each in increasing s or t: bottom, right, top, left."""
     out = []
-    for k, (axis, start) in enumerate(_face_edges(lat, key)):
+    for k, (axis, start) in enumerate(_face_edges(key)):
         t, i = _edge_ref(lat, axis, start, ts, ids)
         st = np.empty((len(t), 2))
         if k in (0, 2):
@@ -507,7 +508,7 @@ def sample_parameters(tiling, fmap, tolerance):
     faces = sorted({lat.face(a, g)[0] for index in sorted(tiling.cells) for a, g in
                     ((a, tuple(index[k] + (side if k == a else 0) for k in range(3)))
                      for a in range(3) for side in (0, 1))})
-    edges = sorted({lat.edge(axis, start)[0] for key in faces for axis, start in _face_edges(lat, key)})
+    edges = sorted({lat.edge(axis, start)[0] for key in faces for axis, start in _face_edges(key)})
     verts = sorted({lat.vertex(g) for key in edges for g in (key[1:], tuple(key[1 + k] + (k == key[0])
                                                                              for k in range(3)))})
     vid = {g: i for i, g in enumerate(verts)}
@@ -527,7 +528,7 @@ def sample_parameters(tiling, fmap, tolerance):
     for _ in range(64):
         changed = False
         for key in ladders:
-            bottom, right, top, left = _face_edges(lat, key)
+            bottom, right, top, left = _face_edges(key)
             rails = (left, right) if info[key][2] else (bottom, top)
             refs = [lat.edge(axis, start) for axis, start in rails]
             local = [1.0 - ts[k][::-1] if rev else ts[k] for k, rev in refs]
@@ -907,7 +908,7 @@ def _setback(xyz, faces, slot, cut, half):
     return disp[cluster]
 
 
-def cell_surface(cell, sampling, fmap, grid=None, face_clearance=0.0):
+def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int). With
     face_clearance > 0 the cut faces are set back by half of it (the neighbour sets its side back by the other
     half), the outer faces stay exact."""
@@ -1062,7 +1063,7 @@ def _domain_body(cell, sampling, fmap, dpins, dholes, what):
         mask[np.abs(q[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
     xyz = np.full(q.shape, np.nan)
     # the box's own points keep their exact parameters through the engine, and take the shared positions
-    where = {p.tobytes(): i for p, i in zip(uvw, ids)}
+    where = {p.tobytes(): i for p, i in zip(uvw, ids, strict=True)}
     for r in np.flatnonzero(mask):
         i = where.get(q[r].tobytes())
         if i is not None:
@@ -1125,7 +1126,7 @@ def _refine(q, xyz, f, mask, evaluate, target):
     return q, xyz, f
 
 
-def build_piece(cell, tiling, sampling, fmap, joints, what=None, grid=None, face_clearance=0.0):
+def build_piece(cell, sampling, fmap, joints, what=None, face_clearance=0.0):
     """One cell -> Piece: its body through F, cut faces set back by face_clearance / 2, pins united and holes
     subtracted (in mm, or in the domain for joints with space 'domain'); checked to be one closed solid with outward
     normals. (grid: unused, kept for callers of the earlier signature.)"""
@@ -1169,7 +1170,7 @@ def _warm_worker():
 def _build_in_worker(index):
     w = _WORKER
     t0 = time.perf_counter()
-    p = build_piece(w["tiling"].cell(index), w["tiling"], w["sampling"], w["fmap"], w["joints"],
+    p = build_piece(w["tiling"].cell(index), w["sampling"], w["fmap"], w["joints"],
                     face_clearance=w.get("face_clearance", 0.0))
     # plain arrays travel between processes more cheaply and predictably than trimesh objects
     return (p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume, p.body_volume,

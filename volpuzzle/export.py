@@ -13,9 +13,9 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
 import trimesh
@@ -263,8 +263,8 @@ def _printing_md(pieces, spec) -> list:
 
     prints = [p.get("print") or {} for p in pieces]
     contact = [x.get("bed_contact_mm2") for x in prints if x.get("bed_contact_mm2") is not None]
-    low = [p["id"] for p, x in zip(pieces, prints) if (x.get("bed_contact_mm2") or 0) < BED_MIN_MM2]
-    cuts = [p["id"] for p, x in zip(pieces, prints) if x.get("base_cut_mm")]
+    low = [p["id"] for p, x in zip(pieces, prints, strict=True) if (x.get("bed_contact_mm2") or 0) < BED_MIN_MM2]
+    cuts = [p["id"] for p, x in zip(pieces, prints, strict=True) if x.get("base_cut_mm")]
     pins = sum(x.get("pins") or 0 for x in prints)
     up = sum(x.get("pins_up") or 0 for x in prints)
     out = ["", "## Printing", "",
@@ -530,10 +530,10 @@ def _free_space_problem(parent: Path, items) -> str | None:
 
 
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
-                dowels: Sequence = (), colors: Optional[np.ndarray] = None,
-                extras: Optional[Mapping[str, Callable[[Path], None]]] = None,
-                pin_triangles: Optional[Mapping[str, np.ndarray]] = None,
-                triangle_colors: Optional[Mapping[str, np.ndarray]] = None) -> Path:
+                dowels: Sequence = (), colors: np.ndarray | None = None,
+                extras: Mapping[str, Callable[[Path], None]] | None = None,
+                pin_triangles: Mapping[str, np.ndarray] | None = None,
+                triangle_colors: Mapping[str, np.ndarray] | None = None) -> Path:
     """Write the output folder (SPEC section 5) atomically -> the target path.
 
     pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.
@@ -600,12 +600,13 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         (tmp / "pieces").mkdir()
         # the largest file first, so that the worker is busy from the start
         write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
-              [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors)], "millimeter",
+              [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors, strict=True)],
+              "millimeter",
               [(pin_triangles or {}).get(pid) for pid, _ in items], DEFAULT_ACCENT,
               None if triangle_colors is None else [triangle_colors.get(pid) for pid, _ in items])
         entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
         piece_entries = []
-        for (pid, mesh), piece, rgb in zip(items, pieces, colors):
+        for (pid, mesh), piece, rgb in zip(items, pieces, colors, strict=True):
             rel = f"pieces/{pid}.{fmt}"
             write(tmp / rel, _write_piece, tmp / rel, pid, mesh, fmt, rgb, (pin_triangles or {}).get(pid),
                   (triangle_colors or {}).get(pid))

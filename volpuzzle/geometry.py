@@ -16,7 +16,13 @@ from .errors import GeometryError
 _OPS = {"union": lambda a, b: a + b, "difference": lambda a, b: a - b, "intersection": lambda a, b: a ^ b}
 
 
-def _check(m, what, step):
+def is_ok(m):
+    """True when the engine reports no error for Manifold m (its status; emptiness is the caller's question)."""
+    return m.status() == manifold3d.Error.NoError
+
+
+def check_status(m, what, step):
+    """m, or GeometryError naming `what` and the `step` at which the engine failed (with its status)."""
     status = m.status()
     if status != manifold3d.Error.NoError:
         raise GeometryError(f"{what}: the geometry engine failed at {step} (status {status.name})")
@@ -37,7 +43,7 @@ def manifold_from_mesh(vertices, faces, what, keep_faces=True):
         raise GeometryError(f"{what}: the mesh has non-finite vertex coordinates")
     face_id = np.arange(len(f), dtype=np.uint64) if keep_faces else None
     m = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=v, tri_verts=f, face_id=face_id))
-    _check(m, what, "building a solid from its mesh")
+    check_status(m, what, "building a solid from its mesh")
     if m.is_empty():
         raise GeometryError(f"{what}: the mesh encloses no volume (empty solid from {len(f)} triangles)")
     return m
@@ -60,9 +66,9 @@ def boolean(a, b, op, what):
     """a op b for op in 'union' | 'difference' | 'intersection'; checks the status of the result."""
     if op not in _OPS:
         raise GeometryError(f"{what}: unknown boolean operation {op!r} (expected one of {sorted(_OPS)})")
-    _check(a, what, f"{op} (first operand)")
-    _check(b, what, f"{op} (second operand)")
-    return _check(_OPS[op](a, b), what, op)
+    check_status(a, what, f"{op} (first operand)")
+    check_status(b, what, f"{op} (second operand)")
+    return check_status(_OPS[op](a, b), what, op)
 
 
 def check_solid(mesh, what):
@@ -134,6 +140,6 @@ def _row_keys(a, b):
 
 def trim(m, normal, offset, what):
     """The part of Manifold m on the side `normal` points to of the plane normal . x = offset, status checked."""
-    return _check(_check(m, what, "trimming by a plane (operand)").trim_by_plane(tuple(float(x) for x in normal),
-                                                                               float(offset)),
-                  what, "trimming by a plane")
+    operand = check_status(m, what, "trimming by a plane (operand)")
+    return check_status(operand.trim_by_plane(tuple(float(x) for x in normal), float(offset)), what,
+                        "trimming by a plane")

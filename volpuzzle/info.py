@@ -2,14 +2,14 @@
 
 import numpy as np
 
-AXES = "uvw"
+from .grid import AXES
 
 
 def _knot_summary(knots, degree):
     k = np.asarray(knots, float)
     lo, hi = float(k[degree]), float(k[-degree - 1])
     values, counts = np.unique(k[degree + 1:len(k) - degree - 1], return_counts=True)
-    inner = [[float(v), int(c)] for v, c in zip(values, counts)]
+    inner = [[float(v), int(c)] for v, c in zip(values, counts, strict=True)]
     return {"count": int(len(k)), "domain": [lo, hi], "spans": len(inner) + 1,
             "interior": inner}  # [value, multiplicity]
 
@@ -141,7 +141,7 @@ def format_info(d):
         if d.get("patches") is not None:
             extra.append(f"patch {d['patch']} of {d['patches']}")
         rows.append(("file", where + (f"  [{', '.join(extra)}]" if extra else "")))
-    rows.append(("degrees", "  ".join(f"{a} {p}" for a, p in zip(AXES, d["degrees"]))))
+    rows.append(("degrees", "  ".join(f"{a} {p}" for a, p in zip(AXES, d["degrees"], strict=True))))
     n = d["control_points"]
     rows.append(("control points", f"{n[0]} x {n[1]} x {n[2]} = {n[0] * n[1] * n[2]}"
                                    f" ({'rational' if d.get('rational') else 'polynomial'})"))
@@ -152,7 +152,7 @@ def format_info(d):
     periodic = d.get("periodic") or []
     rows.append(("periodic", ", ".join(periodic) if periodic else "none"))
     lo, hi = d["bbox"]
-    size = [h - l for l, h in zip(lo, hi)]
+    size = [b - a for a, b in zip(lo, hi, strict=True)]
     units = d.get("units") or "model units"
     rows.append(("bounding box", f"{_vec(lo)} .. {_vec(hi)}  size {' x '.join(_g(s) for s in size)} {units}"))
     cubed = f"{units}^3" if d.get("units") else "model units cubed"

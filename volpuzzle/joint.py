@@ -38,8 +38,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import GeometryError, SpecError
+from .geometry import is_ok
+from .grid import AXES, frame_from_direction, piece_id
 
-AXES = "uvw"
 CIRCLE_TOL = 0.02  # mm: largest distance between a joint's polygon and its circle
 SNAP_SWELL = 1.15  # widest radius of a snap pin, in pin radii
 DEFAULT_CLEARANCE = 0.15
@@ -61,10 +62,6 @@ def wall(radius):
 def outer_radius(radius, shape):
     """The widest radius of a pin of this shape (a snap pin swells), mm."""
     return radius * (SNAP_SWELL if shape == "snap" else 1.0)
-
-
-def piece_id(index):
-    return "p" + "-".join(str(int(i)) for i in index)
 
 
 def _cyclic(a):
@@ -241,7 +238,7 @@ def _measure(tiling, fmap):
     return _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)})
 
 
-def _face_side(tiling, geo, f):
+def _face_side(geo, f):
     """Shorter in-face side of face f through its centre, mm."""
     b, c = _cyclic(f.axis)
     fr = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
@@ -261,7 +258,7 @@ def default_sizes(tiling, fmap, _geo=None):
     rounded down to 0.1 mm. Faces too small for these get smaller pins of their own (place_joints)."""
     geo = _geo or _measure(tiling, fmap)
     if tiling.faces:
-        side = float(np.median([_face_side(tiling, geo, f) for f in tiling.faces]))
+        side = float(np.median([_face_side(geo, f) for f in tiling.faces]))
         depth = float(np.median([_center_len(geo, idx, f.axis) for f in tiling.faces for idx in (f.lower, f.upper)]))
     else:
         side = depth = min(_center_len(geo, idx, a) for idx in tiling.cells for a in range(3))
@@ -347,7 +344,7 @@ def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
     k = len(_CAND)
     ring = np.stack([np.cos(np.arange(12) * np.pi / 6), np.sin(np.arange(12) * np.pi / 6)], axis=1)
     per = []
-    for n, f in enumerate(tiling.faces):
+    for f in tiling.faces:
         a = f.axis
         b, c = _cyclic(a)
         low, up = tiling.cells[f.lower], tiling.cells[f.upper]
@@ -367,7 +364,7 @@ def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
     _, jac_up = fmap.evaluate_with_jacobian(np.concatenate([p[4] for p in per]))
     x, jac, jac_up = x.reshape(-1, k, 3), jac.reshape(-1, k, 3, 3), jac_up.reshape(-1, k, 3, 3)
     nrms, rings = [], []
-    for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
+    for n, (f, _fr, _fr_up, uvw, _uvw_up) in enumerate(per):
         a = f.axis
         b, c = _cyclic(a)
         j = jac[n]
@@ -538,7 +535,7 @@ def _split_dirs(tiling, fmap, plan):
     from .assembly import split_directions
 
     out = {}
-    for (d, _), step in zip(split_directions(tiling, fmap, plan), plan.steps):
+    for (d, _), step in zip(split_directions(tiling, fmap, plan), plan.steps, strict=True):
         if not np.any(d):
             continue
         mv, fx = set(step.moving), set(step.fixed)
@@ -608,7 +605,7 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
         f = fd.face
         room = bool(_fits(fd, smallest, lean=False).any())
         if n not in chosen:
-            contacts.append(_contact(f, room, None, _why_not(fd, sizes, smallest, room, r_min, l_min)))
+            contacts.append(_contact(f, room, None, _why_not(fd, smallest, room, r_min, l_min)))
             continue
         k, s = chosen[n]
         base = float(_base(fd, s)[k])
@@ -666,7 +663,7 @@ def _cost(chosen, sizes, data, cells):
             round(sum(sizes.radius - s.radius for s in small), 6))
 
 
-def _why_not(fd, sizes, smallest, room, r_min, l_min):
+def _why_not(fd, smallest, room, r_min, l_min):
     """One sentence: why face fd carries no joint."""
     if not fd.usable.any():
         return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
@@ -811,19 +808,14 @@ def _manifold():
 
 
 def _checked(m, what):
-    status = m.status()
-    if status != _manifold().Error.NoError:
-        raise GeometryError(f"{what}: the geometry engine failed ({status})")
+    if not is_ok(m):
+        raise GeometryError(f"{what}: the geometry engine failed ({m.status()})")
     return m
 
 
 def _frame(j, flip=False):
     """3x4 rigid transform: local z -> the joint's direction (reversed if flip), origin -> its centre."""
-    n = np.asarray(j.direction, dtype=float) * (-1.0 if flip else 1.0)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = np.cross(helper, n)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    e1, e2, n = frame_from_direction(np.asarray(j.direction, dtype=float) * (-1.0 if flip else 1.0))
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, j.center
     return m

@@ -21,11 +21,12 @@ of a millimetre deeper than that.
 
 import weakref
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
 
 from .errors import GeometryError
+from .geometry import is_ok
 
 DEPTH_MM = 0.4
 MIN_STROKE_MM = 0.8  # narrowest stem a 0.4 mm nozzle prints as two lines
@@ -58,7 +59,7 @@ def _cyclic(a):
 # Text
 
 
-@lru_cache(maxsize=None)
+@cache
 def _font():
     from matplotlib.font_manager import FontProperties
 
@@ -494,7 +495,7 @@ def _cell_means(grid):
     return 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
 
 
-def _heights(cell, fmap, a, side, center, normal, up, uvw0, xs, ys, st=None, inv=None):
+def _heights(cell, fmap, a, center, normal, up, uvw0, xs, ys, st=None, inv=None):
     """Surface heights (len(ys), len(xs)) mm along `normal` above the tangent plane at points (x, y) of it, by Newton
     on the face's two parameters -> (heights, parameters (ny, nx, 2), inverse Jacobians (ny, nx, 2, 2), ok); ok is
     False where Newton left the face or did not converge. st, inv: a guess of both (as _on_face takes them), else one
@@ -549,7 +550,7 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
     half_x = 0.5 * height * ink_w / ink_h + 0.5
     half_y = 0.5 * height + 0.5
     xs, ys = _axis_grid(half_x), _axis_grid(half_y)
-    h, st, inv, ok = _heights(cell, fmap, a, side, center, normal, up, uvw0, xs, ys)
+    h, st, inv, ok = _heights(cell, fmap, a, center, normal, up, uvw0, xs, ys)
     if not ok:
         return None
     gy, gx = np.gradient(h, ys, xs)
@@ -557,7 +558,7 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
         return None
     # the interpolant's error, measured at the cells' centres
     xm, ym = 0.5 * (xs[1:] + xs[:-1]), 0.5 * (ys[1:] + ys[:-1])
-    hm, _, _, ok = _heights(cell, fmap, a, side, center, normal, up, uvw0, xm, ym, st=_spline_grid(xs, ys, st, xm, ym),
+    hm, _, _, ok = _heights(cell, fmap, a, center, normal, up, uvw0, xm, ym, st=_spline_grid(xs, ys, st, xm, ym),
                             inv=_cell_means(inv))
     if not ok:
         return None
@@ -685,7 +686,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if cs is None:
         raise GeometryError(f"{what}: label {text!r} at {site.height_mm:.2f} mm is too small to print "
                             f"(expected at least {min_height_mm(text, stroke):.2f} mm)")
-    if body.status() != m3.Error.NoError:
+    if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
     h = _measured_heights(body, site)
@@ -721,12 +722,12 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
         return frame[:, 3] + v[:, 0:1] * frame[:, 0] + v[:, 1:2] * frame[:, 1] + z[:, None] * frame[:, 2]
 
     prism = prism.warp_batch(bend)
-    if prism.status() != m3.Error.NoError or prism.is_empty():
+    if not is_ok(prism) or prism.is_empty():
         raise GeometryError(f"{what}: the geometry engine failed building the label {text!r} "
                             f"(status {prism.status().name})")
     before = len(body.decompose())
     out = body - prism
-    if out.status() != m3.Error.NoError:
+    if not is_ok(out):
         raise GeometryError(f"{what}: the geometry engine failed engraving the label {text!r} "
                             f"(status {out.status().name})")
     if out.is_empty() or len(out.decompose()) != before:

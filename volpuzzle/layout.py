@@ -230,7 +230,7 @@ def joint_directions(joints):
     """{piece id: [(3,) pin directions]} and {piece id: [(3,) directions its holes open towards]}: a pin leaves its
     piece along the joint's direction, the hole it enters opens back against it; a dowel's two holes open towards
     each other."""
-    from .joint import piece_id
+    from .grid import piece_id
 
     pins, openings = {}, {}
     for j in joints or ():
@@ -293,12 +293,12 @@ def layout(parts, plate, spacing, pin_directions=None, margin=0.0, poses=None, h
         moves = packing.roll_transform(bounds, extents[chosen])
         # the boxes' real extents on the plate, then the shift that centres the group on the plate
         placed = [trimesh.transform_points(np.array([[0, 0, 0], [*extents[i], 0]], float) - [*extents[i] / 2, 0],
-                                           _move2(m2)) for i, m2 in zip(chosen, moves)]
+                                           _move2(m2)) for i, m2 in zip(chosen, moves, strict=True)]
         lo = np.min([p.min(axis=0)[:2] for p in placed], axis=0)
         hi = np.max([p.max(axis=0)[:2] for p in placed], axis=0)
         shift = (plate - (hi - lo)) / 2.0 - lo
         index = len(plates) + 1
-        for i, m2 in zip(chosen, moves):
+        for i, m2 in zip(chosen, moves, strict=True):
             m3 = _move2(m2)
             m3[:2, 3] += shift
             placements[i] = Placement(parts[i][0], index, m3 @ oriented[i], areas[i])

@@ -7,8 +7,9 @@ the mesh is thin, and a fragment handed to a neighbour could carry half a joint 
 
 Contacts. Two pieces cut from neighbouring cells share the cells' common face exactly: compose tessellates a shared
 face once, and the engine cuts both copies by the same mesh triangles, so the shared patch has the same vertices on
-both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices all belong to the other lies on their contact; the sum of
-their areas is the contact's area (it equals (area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
+both sides (up to rounding, which vertex keys at a nanometre absorb). A triangle of one piece whose three vertices
+all belong to the other lies on their contact; the sum of their areas is the contact's area (it equals
+(area A + area B - area (A u B)) / 2, which costs a Boolean per pair).
 A touch along an edge or at a point has no area and is no contact: merging across it would weld a non-manifold solid.
 
 Joints (the paper's Fig. 15). On each contact patch the pin goes where the patch leaves the most wall: the patch
@@ -23,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
+from .geometry import check_status
+from .grid import frame_from_direction
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
@@ -33,23 +36,14 @@ _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
 
-def _check(m, what, step):
-    import manifold3d
-
-    status = m.status()
-    if status != manifold3d.Error.NoError:
-        raise GeometryError(f"{what}: the geometry engine failed at {step} (status {status.name})")
-    return m
-
-
 def intersect_pieces(pieces_bodies, mesh_manifold, min_volume=1e-9):
     """{id: Manifold} cage pieces (mm) and the mesh as a Manifold -> {id: body ∩ mesh}. A cell that misses the mesh
     (empty or below min_volume mm^3) gives no piece."""
-    _check(mesh_manifold, "mesh model", "the mesh solid")
+    check_status(mesh_manifold, "mesh model", "the mesh solid")
     out = {}
     for pid, body in pieces_bodies.items():
-        _check(body, pid, "the cage piece")
-        cut = _check(body ^ mesh_manifold, pid, "intersecting the piece with the mesh")
+        check_status(body, pid, "the cage piece")
+        cut = check_status(body ^ mesh_manifold, pid, "intersecting the piece with the mesh")
         if not cut.is_empty() and cut.volume() > min_volume:
             out[pid] = cut
     return out
@@ -76,7 +70,7 @@ def _shared_faces(meshes, ids=None):
     eps = 1e-6 * max(span, 1.0)
     out = {}
     for i, mi in enumerate(meshes):
-        for j, mj in enumerate(meshes):
+        for j in range(len(meshes)):
             if i == j or np.any(boxes[i, 0] > boxes[j, 1] + eps) or np.any(boxes[j, 0] > boxes[i, 1] + eps):
                 continue
             on = np.isin(ids[i], ids[j])
@@ -191,7 +185,7 @@ def merge_fragments(pieces, min_fraction=0.05):
         if best is None:
             break
         _, c, o = best
-        merged = _check(solid[o] + solid[c], bodies[min(members[o])][0], "merging a fragment")
+        merged = check_status(solid[o] + solid[c], bodies[min(members[o])][0], "merging a fragment")
         if not _one_manifold_solid(merged):
             # the two also meet along an edge or at a point somewhere (four cells around a cage edge cut a tube into
             # quarters; diagonal quarters touch along the edge): welded, that is no solid a slicer takes
@@ -269,23 +263,15 @@ def _reach(size, radius):
     return outer_radius(radius, size.shape) + size.clearance
 
 
-def _frame(d):
-    d = np.asarray(d, float)
-    d = d / np.linalg.norm(d)
-    helper = np.eye(3)[int(np.argmin(np.abs(d)))]
-    e1 = np.cross(helper, d)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(d, e1), d
-
-
 def _cylinder(center, d, r, z0, z1, segments=24):
     import manifold3d
 
-    e1, e2, n = _frame(d)
+    d = np.asarray(d, float)
+    e1, e2, n = frame_from_direction(d / np.linalg.norm(d))
     m = np.zeros((3, 4))
     m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
     cyl = manifold3d.Manifold.cylinder(z1 - z0, r, -1.0, segments).translate([0.0, 0.0, z0])
-    return _check(cyl.transform(m), "joint", "the joint's room")
+    return check_status(cyl.transform(m), "joint", "the joint's room")
 
 
 def _outside(env, solids):
@@ -302,7 +288,7 @@ def _crop(solid, lo, hi):
     import manifold3d
 
     box = manifold3d.Manifold.cube(list(np.asarray(hi) - np.asarray(lo))).translate(list(lo))
-    return _check(solid ^ box, "joint", "cropping a piece around a contact")
+    return check_status(solid ^ box, "joint", "cropping a piece around a contact")
 
 
 def _samples(tris, rng, spacing):
@@ -556,7 +542,7 @@ def place_joints(pieces, cells, size, plan=True, seed=0):
             roles = sorted((True, False), key=lambda pa: (pins[c.a if pa else c.b] + holes[c.b if pa else c.a],
                                                           pins[c.a if pa else c.b], not pa))
 
-            def attempt(d):
+            def attempt(d, c=c, roles=roles, patch=patch, crops=crops, memo=memo):
                 """The first role that is not full and whose pin fits clear of the joints placed so far."""
                 why = None
                 for pin_a in roles:
@@ -641,7 +627,7 @@ def joint_graph_problem(piece_ids, joints, records):
     piece left out and why its contacts took no pin."""
     import networkx as nx
 
-    from .joint import piece_id
+    from .grid import piece_id
 
     g = nx.Graph()
     g.add_nodes_from(piece_ids)
@@ -801,12 +787,12 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
                 ns, ws, _ = crossing(block, moving)
                 if not ns:
                     continue
-                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws)))
+                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws, strict=True)))
                 low = min(float((n @ d).min()) for n in ns)
                 if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
                     continue
                 # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
-                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws)]
+                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws, strict=True)]
                 key = (min(means) >= cos_tilt, min(cut, len(order) - cut), min(means), low)
                 cands.append((key, sorted(moving), sorted(order[:cut]), d))
         cands.sort(key=lambda c: c[0], reverse=True)

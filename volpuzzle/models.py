@@ -411,7 +411,8 @@ def validate_builtin(params, key="model.builtin"):
     if kind not in BUILTINS:
         near = difflib.get_close_matches(str(kind), list(BUILTINS), n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
-        raise SpecError([f"{key}.type: unknown builtin (got {_fmt(kind)}, expected one of {', '.join(BUILTINS)}){hint}"])
+        raise SpecError([f"{key}.type: unknown builtin (got {_fmt(kind)}, "
+                         f"expected one of {', '.join(BUILTINS)}){hint}"])
     defaults = BUILTINS[kind][1]
     values = dict(defaults)
     for name, value in params.items():

@@ -12,8 +12,7 @@ import numpy as np
 
 from . import __version__
 from .errors import GeometryError, SpecError
-
-AXES = "uvw"
+from .grid import AXES
 
 
 class Progress:
@@ -422,7 +421,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
 def _require_joined(spec, pieces, joints, contacts):
     """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
-    from .joint import graph_problem, piece_id
+    from .grid import piece_id
+    from .joint import graph_problem
 
     problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
                             contacts or (), spec.joints.style, spec.joints.allow, spec.grid)
@@ -593,7 +593,7 @@ def _label(spec, stages, pieces, joints, timer, progress, poses=None):
     with timer("label", progress):
         results = [one(k, p) for k, p in enumerate(pieces)]
     out = [r[0] for r in results]
-    sites = {p.id: r[1] for p, r in zip(pieces, results)}
+    sites = {p.id: r[1] for p, r in zip(pieces, results, strict=True)}
     removed = sum(r[2] for r in results)
     out = _like(pieces, out)
     return out, sites, removed
@@ -645,7 +645,7 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses
 
     pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
-    rgb = {p.id: c for p, c in zip(pieces, colors)}
+    rgb = {p.id: c for p, c in zip(pieces, colors, strict=True)}
     placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
                                 poses=poses, hole_openings=openings)
     meshes = dict(parts)
@@ -668,7 +668,7 @@ def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses
     def write_preview(path):
         # pins a shade darker than their piece, so that they stand out
         shaded = []
-        for p, c in zip(pieces, colors):
+        for p, c in zip(pieces, colors, strict=True):
             flag = (pins or {}).get(p.id)
             if texture is None and flag is None:
                 shaded.append(np.asarray(c, np.uint8))

@@ -53,7 +53,7 @@ def _visible(parts, offsets):
     (t,) part index."""
     _, _, eye = _view_axes()
     tris, cols, owner = [], [], []
-    for k, ((v, f, rgb), off) in enumerate(zip(parts, offsets)):
+    for k, ((v, f, rgb), off) in enumerate(zip(parts, offsets, strict=True)):
         t = v[f] + off
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
@@ -206,7 +206,7 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
     width = size[0] if panels == 2 else size[0] * 3 // 2
     w, h = width * k, size[1] * k
     colors = list(colors)
-    parts = [_part(m, c) for m, c in zip(meshes, colors)]
+    parts = [_part(m, c) for m, c in zip(meshes, colors, strict=True)]
     exploded = _radial(meshes, explode) if offsets is None else np.asarray(offsets, float)
     views = [(parts, np.zeros((len(parts), 3)), "assembled"), (parts, exploded, "exploded")]
     if plate is not None:
@@ -307,7 +307,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
         if moving and d is not None:
             centre = np.mean([parts[i][0].mean(axis=0) for i in moving], axis=0)
 
-            def to_px(p):
+            def to_px(p, lo=lo, span=span, scale=scale):
                 return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
                         h * k * 0.54 - (p @ up - (lo[1] + span[1] / 2)) * scale)
 

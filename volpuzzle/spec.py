@@ -23,6 +23,7 @@ from pathlib import Path
 import yaml
 
 from .errors import SpecError
+from .grid import AXES as _GRID_AXES
 from .limits import LIMIT_HELP, Limits
 
 __all__ = [
@@ -31,7 +32,8 @@ __all__ = [
     "load_spec", "load_spec_text", "with_overrides", "spec_to_dict",
 ]
 
-AXES = ("u", "v", "w")
+# a tuple, not the string: `name in AXES` must not accept "uv" or ""
+AXES = tuple(_GRID_AXES)
 UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}  # mm per model unit
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
 NURBS_SUFFIXES = (".json", ".xml", ".itd")
@@ -934,7 +936,7 @@ def spec_to_dict(spec: Spec) -> dict:
         "name": spec.name,
         "model": model,
         "grid": list(spec.grid),
-        "splits": {ax: (list(s) if isinstance(s, tuple) else s) for ax, s in zip(AXES, spec.splits)},
+        "splits": {ax: (list(s) if isinstance(s, tuple) else s) for ax, s in zip(AXES, spec.splits, strict=True)},
         "periodic": [AXES[k] for k in spec.periodic],
         "randomize": None if r is None else {"seed": r.seed, "amplitude": r.amplitude,
                                              "control_points": r.control_points},

@@ -5,8 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SpecError
-
-AXES = "uvw"
+from .grid import AXES, piece_id
 
 
 @dataclass(frozen=True, eq=False)
@@ -18,7 +17,7 @@ class Cell:
 
     @property
     def id(self):
-        return "p" + "-".join(str(i) for i in self.index)
+        return piece_id(self.index)
 
     @property
     def center(self):
@@ -29,7 +28,8 @@ class Cell:
 class Face:
     """A face shared by two cells: the max face (along `axis`) of cell `lower` is the min face of cell `upper`.
 
-    Across a periodic seam, `lower` is a last cell and `upper` a first one, and `seam` maps parameters on the lower cell's
+    Across a periodic seam, `lower` is a last cell and `upper` a first one, and `seam` maps parameters on
+    the lower cell's
     max face to the coincident parameters on the upper cell's min face (Seam.map_max_to_min).
     """
 
@@ -117,7 +117,7 @@ def _balanced(breaks, mass, axes, sweeps=4, steps=40):
     prefix[1:, 1:, 1:] = m.cumsum(0).cumsum(1).cumsum(2)
     lo = [b[0] for b in breaks]
     span = [b[-1] - b[0] for b in breaks]
-    pos = [(np.asarray(b, float) - l) / s * k for b, l, s, k in zip(breaks, lo, span, n)]
+    pos = [(np.asarray(b, float) - b0) / s * k for b, b0, s, k in zip(breaks, lo, span, n, strict=True)]
     for a in axes:
         marg = m.sum(axis=tuple(x for x in range(3) if x != a))
         cum = np.concatenate([[0.0], np.cumsum(marg)]) + np.linspace(0.0, 1e-9, n[a] + 1)  # strictly increasing
@@ -139,7 +139,7 @@ def _balanced(breaks, mass, axes, sweeps=4, steps=40):
                     r = ratio(trial)
                     if r < best - 1e-9:
                         best, pos = r, trial
-    return tuple(l + p / k * s for l, p, k, s in zip(lo, pos, n, span))
+    return tuple(b0 + p / k * s for b0, p, k, s in zip(lo, pos, n, span, strict=True))
 
 
 def _breaks(vol, grid, splits, axis, mass=None):
@@ -177,20 +177,21 @@ def _seam_index_map(seam, axis, breaks):
     src = (nb, nc)
     dst = (nc, nb) if seam.swap else (nb, nc)
     # The seam maps the face's grid lines onto the grid lines of the other side only when they match.
-    for d, flip, sb, name in ((0, seam.flip[0], dst[0], AXES[b]), (1, seam.flip[1], dst[1], AXES[c])):
+    for d, flip, sb in ((0, seam.flip[0], dst[0]), (1, seam.flip[1], dst[1])):
         target = (1 - sb[::-1]) if flip else sb
         have = nb if d == 0 else nc
         if len(target) != len(have) or not np.allclose(target, have, atol=1e-9):
             raise SpecError(
-                f"periodic.{AXES[axis]}: the seam {'turns' if seam.swap else 'mirrors'} the {AXES[b]}{AXES[c]} face, so the "
-                f"cuts along {AXES[b]} and {AXES[c]} must match across it (got {AXES[b]} {np.round(nb, 4).tolist()} and "
-                f"{AXES[c]} {np.round(nc, 4).tolist()}, expected the same cuts on both, e.g. equal uniform grids)")
+                f"periodic.{AXES[axis]}: the seam {'turns' if seam.swap else 'mirrors'} the {AXES[b]}{AXES[c]} face, "
+                f"so the cuts along {AXES[b]} and {AXES[c]} must match across it "
+                f"(got {AXES[b]} {np.round(nb, 4).tolist()} and {AXES[c]} {np.round(nc, 4).tolist()}, "
+                f"expected the same cuts on both, e.g. equal uniform grids)")
 
     def index_map(ib, ic):
         s = (np.array([src[0][ib], src[0][ib + 1]]), np.array([src[1][ic], src[1][ic + 1]]))
         if seam.swap:
             s = (s[1], s[0])
-        s = tuple(1 - x[::-1] if f else x for x, f in zip(s, seam.flip))
+        s = tuple(1 - x[::-1] if f else x for x, f in zip(s, seam.flip, strict=True))
         jb = int(np.argmin(np.abs(nb[:-1] - s[0][0])))
         jc = int(np.argmin(np.abs(nc[:-1] - s[1][0])))
         return jb, jc

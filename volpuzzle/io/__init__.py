@@ -24,7 +24,6 @@ HEAD_BYTES = 65536
 # that areas, volumes and Jacobians of it stay finite in double precision (1e308 made every figure inf or NaN).
 MAX_COORDINATE = 1e9
 UNITS = ("mm", "cm", "m", "in")
-AXES = "uvw"
 
 
 # --- helpers shared by the format modules ---------------------------------------------------------------------
@@ -299,4 +298,5 @@ def save_model(vol, path, units="mm"):
     return path
 
 
-__all__ = ["load_model", "load_model_with_meta", "read_patches", "load_surface", "load_surface_with_meta", "save_model", "detect_format", "format_names"]
+__all__ = ["load_model", "load_model_with_meta", "read_patches", "load_surface", "load_surface_with_meta",
+           "save_model", "detect_format", "format_names"]

@@ -18,7 +18,7 @@ EXTENSIONS = (".json",)
 EXTENSION_FALLBACK = False
 
 
-def detect(path, head):
+def detect(_path, head):
     return head.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] == b"{" and b'"shape"' in head
 
 

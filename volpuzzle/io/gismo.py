@@ -34,7 +34,7 @@ _B64 = {"b64float64": "<f8", "b64float32": "<f4", "b64int32": "<i4", "b64int64":
 _DECL = re.compile(rb"<\?xml[^>]*\?>")
 
 
-def detect(path, head):
+def detect(_path, head):
     body = _DECL.sub(b"", head.lstrip(b"\xef\xbb\xbf"))
     body = re.sub(rb"<!--.*?-->", b"", body, flags=re.S).lstrip()
     return body.startswith(b"<xml") and body[4:5] in (b">", b" ", b"\t", b"\n", b"\r", b"/")
@@ -88,7 +88,7 @@ def _bspline_basis(path, basis, label, dims=3):
         keys = [int(b.get("index", a)) for a, b in enumerate(kids)]
     except ValueError:
         raise fail(path, f"{label}.Basis", f"index: expected {' or '.join(map(str, range(dims)))}") from None
-    kids = [b for _, b in sorted(zip(keys, kids), key=lambda kb: kb[0])]
+    kids = [b for _, b in sorted(zip(keys, kids, strict=True), key=lambda kb: kb[0])]
     degrees, knots = [], []
     for a, b in enumerate(kids):
         field = f"{label}.Basis[{a}]"
@@ -130,7 +130,7 @@ def _geometry(path, g, label, dims=3):
     if basis.get("type") != f"TensorBSplineBasis{dims}":
         raise fail(path, f"{label}.Basis", f"expected type TensorBSplineBasis{dims}, got {basis.get('type')!r}")
     degrees, knots = _bspline_basis(path, basis, label, dims)
-    sizes = [len(k) - p - 1 for k, p in zip(knots, degrees)]
+    sizes = [len(k) - p - 1 for k, p in zip(knots, degrees, strict=True)]
     for a, n in enumerate(sizes):
         if n < 1:
             raise fail(path, f"{label}.Basis[{a}].KnotVector",

@@ -26,7 +26,7 @@ _MAX_DEPTH = 64  # IRIT objects nest a few levels; deeper is not a model (and wo
 _MAX_DEGREE = 7  # as spline.Volume
 
 
-def detect(path, head):
+def detect(_path, head):
     text = re.sub(rb"(?m)^\s*#.*$", b"", head[:8192]).lstrip().upper()
     return text.startswith(b"[") and (b"[OBJECT" in text or b"TRIVAR" in text or b"CURVE" in text
                                       or b"SURFACE" in text)
@@ -126,7 +126,7 @@ def _trivar(path, node, label, dims=3):
                                                  f"in space); expected E3 or P3")
     if dim != 3:
         raise fail(path, f"{label}: point type", f"expected E3 or P3 (points in space), got {scalars[-1]}")
-    for a, (n, k) in enumerate(zip(lengths, orders)):
+    for a, (n, k) in enumerate(zip(lengths, orders, strict=True)):
         if n < 1 or k < 2 or k > n:
             raise fail(path, f"{label}: {'uvw'[a]}", f"expected order >= 2 and length >= order, got length {n}, "
                                                     f"order {k}")
@@ -150,10 +150,10 @@ def _trivar(path, node, label, dims=3):
     periodic = [False] * dims
     if kind == "BSPLINE":
         if len(kvs) != dims:
-            raise fail(path, f"{label}: knot vectors", f"expected {count_word} [KV ...] lists ({', '.join('uvw'[:dims])}), "
-                                                       f"got {len(kvs)}")
+            raise fail(path, f"{label}: knot vectors",
+                       f"expected {count_word} [KV ...] lists ({', '.join('uvw'[:dims])}), got {len(kvs)}")
         knots = []
-        for a, ((tag, kv), n, k) in enumerate(zip(kvs, lengths, orders)):
+        for a, ((tag, kv), n, k) in enumerate(zip(kvs, lengths, orders, strict=True)):
             field = f"{label}: {tag} {'uvw'[a]}"
             if tag == "KVP":
                 if len(kv) not in (n + 2 * k - 1, n + k):
@@ -215,7 +215,7 @@ def read(path):
         label = f"TRIVAR[{i}]" + (f" (object {name})" if name else "")
         vol, per = _trivar(path, node, label)
         vols.append(vol)
-        periodic.append([ax for ax, p in zip("uvw", per) if p])
+        periodic.append([ax for ax, p in zip("uvw", per, strict=True) if p])
     if not vols:
         raise fail(path, "TRIVAR", "no volume in the file: expected a [TRIVAR BSPLINE ...] or "
                                    "[TRIVAR BEZIER ...] object")
@@ -229,7 +229,7 @@ def read_surfaces(path):
     for i, (node, name) in enumerate(_walk(tree, kind="SURFACE")):
         surf, per = _trivar(path, node, f"SURFACE[{i}]" + (f" (object {name})" if name else ""), dims=2)
         surfs.append(surf)
-        periodic.append([ax for ax, p in zip("uv", per) if p])
+        periodic.append([ax for ax, p in zip("uv", per, strict=True) if p])
     if not surfs:
         raise fail(path, "SURFACE", "no surface in the file: expected a [SURFACE BSPLINE ...] or "
                                     "[SURFACE BEZIER ...] object")

@@ -239,7 +239,8 @@ def _read_off(path, data):
             tris.extend([idx[0], idx[i], idx[i + 1]] for i in range(1, n - 1))
     f = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
     if len(f) and (f.min() < 0 or f.max() >= nv):
-        raise _err(path, f"OFF: a face refers to vertex {int(f.max() if f.max() >= nv else f.min())}, outside 0..{nv - 1}")
+        raise _err(path, f"OFF: a face refers to vertex {int(f.max() if f.max() >= nv else f.min())}, "
+                         f"outside 0..{nv - 1}")
     return trimesh.Trimesh(v, f, process=True)
 
 

@@ -25,7 +25,7 @@ _KEYS = ("uOrder", "vOrder", "uDimension", "vDimension", "uKnot", "vKnot", "cont
 _ENTRY = re.compile(r"([A-Za-z_]\w*)\s*(\[[^\]]*\]?|[^\s\[]+)")
 
 
-def detect(path, head):
+def detect(_path, head):
     text = head[:4096].lstrip(b"\xef\xbb\xbf \t\r\n")
     return text.startswith((b"uOrder", b"vOrder", b"uDimension", b"vDimension")) and b"controlPoint" in head
 
@@ -76,7 +76,7 @@ def read_surfaces(path):
     orders = [_int(path, entries, k) for k in ("uOrder", "vOrder")]
     sizes = [_int(path, entries, k) for k in ("uDimension", "vDimension")]
     knots = []
-    for key, n, k in zip(("uKnot", "vKnot"), sizes, orders):
+    for key, n, k in zip(("uKnot", "vKnot"), sizes, orders, strict=True):
         if key not in entries:
             raise fail(path, key, "missing (expected a list of knots)")
         kv = _numbers(path, key, entries[key])

@@ -17,8 +17,8 @@ from __future__ import annotations
 import ctypes
 import threading
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -73,7 +73,7 @@ def _unit_name(L, value) -> str:
     return names.get(int(value), "millimeter")
 
 
-def _transform(L, t: Optional[np.ndarray]):
+def _transform(L, t: np.ndarray | None):
     """(3, 4) [R | t] acting on column vectors -> lib3mf Transform (row-vector convention, 4 rows of 3)."""
     out = L.Transform()
     m = np.eye(3, 4) if t is None else np.asarray(t, dtype=np.float64)
@@ -134,8 +134,8 @@ def _check_object(path, k, obj):
     return str(name), v, f, rgb, transform
 
 
-def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Optional[Sequence] = None,
-              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins", colors: Optional[Sequence] = None) -> Path:
+def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Sequence | None = None,
+              accent_rgb=DEFAULT_ACCENT, accent_name: str = "pins", colors: Sequence | None = None) -> Path:
     """Write one mesh object per entry, each placed by its own build item, each with one colour.
 
     objects: sequence of (name, vertices (n, 3) float, faces (m, 3) int, rgb (3,) uint8 | None,
@@ -143,8 +143,9 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     triangle 0 = the object's colour, 1 = the second material (accent_rgb, named accent_name: what it marks).
     Materials are named for what they are: "piece <name>" for an object's own colour.
     colors: None, or per object None | (m, 3) int array of per-triangle colours or (m, 3 corners, 3) colours at the
-    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials extension, m:colorgroup) that the
-    triangles reference; the object keeps its base material for slicers that only read that.
+    corners (a texture), -1 where the triangle keeps its material. Those go into one colour group (3MF materials
+    extension, m:colorgroup) that the triangles reference; the object keeps its base material for slicers that only
+    read that.
     Raises ExportError naming the file on bad input or a failed write. Same input -> same bytes.
     """
     path = Path(path)
@@ -160,7 +161,7 @@ def write_3mf(path, objects: Sequence, unit: str = "millimeter", materials: Opti
     return path
 
 
-def _color_ids(L, w, cache, rgb):
+def _color_ids(w, cache, rgb):
     """Colour-group property ids for (k, 3) colours, adding each distinct colour once to the file's group."""
     group, ids = cache["group"], cache["ids"]
     keys = (rgb[:, 0].astype(np.int64) << 16) | (rgb[:, 1].astype(np.int64) << 8) | rgb[:, 2].astype(np.int64)
@@ -225,7 +226,7 @@ def _write_model(path, objects, unit, materials, accent_rgb, accent_name="pins",
                                           f"values in 0..255 or -1, got shape {tex.shape}")
                     on = tex[:, 0, 0] >= 0
                     if np.any(on):
-                        rid, cpid = _color_ids(L, w, color_cache, tex[on].reshape(-1, 3))
+                        rid, cpid = _color_ids(w, color_cache, tex[on].reshape(-1, 3))
                         rids[on], pids[on] = rid, cpid.reshape(-1, 3)
                 _set_triangle_materials(L, w, mesh_obj, rids, pids)
             item = model.AddBuildItem(mesh_obj, _transform(L, transform))
@@ -381,7 +382,7 @@ def read_triangle_colors(path, strict: bool = True):
             rgb = np.tile(np.array((128, 128, 128) if own is None else own, np.uint8), (n, 3, 1))
             rid_corner = np.repeat(props["rid"][:, None], 3, axis=1)
             lookup = {}
-            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist())):
+            for rid, pid in set(zip(rid_corner.ravel().tolist(), props["pids"].ravel().tolist(), strict=True)):
                 if rid == 0:
                     continue
                 try:

@@ -19,7 +19,7 @@ FORMAT = "volpuzzle-nurbs"
 VERSION = 1
 
 
-def detect(path, head):
+def detect(_path, head):
     return head.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] == b"{" and FORMAT.encode() in head
 
 

@@ -117,7 +117,7 @@ def _basis(br, invh, ext, p, t, N, dN, B):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+def values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, _der, mode):
     # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
     rat = mode.ndim == 2  # a compile-time constant
     Nu = np.zeros(MAXP)
@@ -166,7 +166,7 @@ def values(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu,
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def values_high(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der, mode):
+def values_high(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, _der, mode):
     # values for degree > 3 along v or w, whose loops cannot run over a padded 4.
     # Scalar accumulators (x, y, z, h) keep everything in registers; h only exists when rational.
     rat = mode.ndim == 2  # a compile-time constant
@@ -428,7 +428,7 @@ def _cubic(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out, der,
+def values_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, _pu, _pv, _pw, cp, out, _der,
                         mode):
     # Tricubic volumes, the common case: every loop has constant length and every basis value is a scalar, so the
     # whole contraction stays in registers (~1.5x over values).
@@ -486,7 +486,7 @@ def _cubic_der(br, invh, ext, t):
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
-def derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, pu, pv, pw, cp, out,
+def derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw, _pu, _pv, _pw, cp, out,
                              der, mode):
     # derivatives for tricubic volumes, with the basis values and derivatives in registers.
     rat = mode.ndim == 2

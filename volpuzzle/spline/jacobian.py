@@ -14,13 +14,11 @@ Coefficients are in the global parameters (the 1/element-width factors of the ch
 for a polynomial M they bound det J itself; for a rational M they bound W^4 det J.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import permutations
 from math import comb
 
 import numpy as np
-
-from ..errors import ModelError
 
 _CHUNK = 256  # elements per batch, to bound memory of the intermediate products
 
@@ -98,7 +96,9 @@ def _element_det(hp, widths, rational):
     du = degs[0] / widths[:, 0, None, None, None, None] * np.diff(g, axis=1)
     dv = degs[1] / widths[:, 1, None, None, None, None] * np.diff(g, axis=2)
     dw = degs[2] / widths[:, 2, None, None, None, None] * np.diff(g, axis=3)
-    lay = lambda f: np.ascontiguousarray(np.moveaxis(_scaled(f), (0, 4), (4, 0)))  # (comp, i, j, k, K)
+    def lay(f):  # -> (comp, i, j, k, K)
+        return np.ascontiguousarray(np.moveaxis(_scaled(f), (0, 4), (4, 0)))
+
     su, sv, sw = lay(du), lay(dv), lay(dw)
     eps = _levi_civita(n)
     t = _shifted_products(sv, sw)                                  # T_cd = (G_v)_c (G_w)_d
@@ -365,11 +365,12 @@ def _certify(vol, js, sign, max_depth, eps):
         if weak.any():
             wk = np.nonzero(weak)[0]
             bad = _null_faces_interior(coef[wk], tol, on_b[wk])
-            for k, b in zip(wk, bad):
+            for k, b in zip(wk, bad, strict=True):
                 if b is not None:
                     where = boxes[k, 0] + b * (boxes[k, 1] - boxes[k, 0])
                     return Certificate("disproved", sign, float(mins.min() / scale), where, _true_det(vol, where),
-                                       scale, depth, f"det J vanishes inside the domain near uvw={np.round(where, 6).tolist()}")
+                                       scale, depth,
+                                       f"det J vanishes inside the domain near uvw={np.round(where, 6).tolist()}")
             degenerate = True
             leaf_min(coef[weak], boxes[weak])
             coef, boxes, mins = coef[~weak], boxes[~weak], mins[~weak]

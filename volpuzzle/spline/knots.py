@@ -8,8 +8,7 @@ volume is refined exactly (The NURBS Book, section 5.2: insert in homogeneous sp
 import numpy as np
 
 from ..errors import ModelError
-
-AXES = "uvw"
+from ..grid import AXES
 
 
 def uniform_knots(n, lo=0.0, hi=1.0, degree=3):
@@ -42,7 +41,8 @@ def insert_knot(knots, degree, hpoints, t, times=1, axis=0):
     """Boehm's algorithm (NURBS Book A5.1) along `axis` of hpoints (..., n, ..., d).
 
     Returns (new_knots (m + times,), new_hpoints with n + times along axis). t must lie in the domain
-    [knots[p], knots[n]) (its start too, for clamping a floating knot vector), and its multiplicity after insertion may not exceed the degree.
+    [knots[p], knots[n]) (its start too, for clamping a floating knot vector),
+    and its multiplicity after insertion may not exceed the degree.
     """
     knots = np.asarray(knots, dtype=float)
     p = int(degree)

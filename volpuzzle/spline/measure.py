@@ -18,7 +18,7 @@ def _gauss_nodes(brk, n):
 
 def _integrate(vol, counts):
     total = 0.0
-    grids = [_gauss_nodes(_breaks(k, p), n) for k, p, n in zip(vol.knots, vol.degrees, counts)]
+    grids = [_gauss_nodes(_breaks(k, p), n) for k, p, n in zip(vol.knots, vol.degrees, counts, strict=True)]
     (u, wu), (v, wv), (w, ww) = grids
     step = max(1, int(2_000_000 // max(1, len(v) * len(w))))  # bound memory: chunks of u
     for s in range(0, len(u), step):
@@ -100,7 +100,7 @@ def bbox(vol, per_span=12, polish=3):
     for c, sgn, axis, x0 in cands:
         free = [a for a in range(3) if a != axis]
 
-        def f(y, c=c, sgn=sgn, axis=axis, x0=x0, free=free):
+        def f(y, c=c, sgn=sgn, x0=x0, free=free):
             x = x0.copy()
             x[free] = y
             p, d = vol.evaluate_with_derivatives(x[None])

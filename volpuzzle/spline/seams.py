@@ -62,7 +62,8 @@ class Seam:
         return out
 
     def map_max_to_min(self, uvw):
-        """(n, 3) parameters on (or projected onto) the max face -> (n, 3) parameters of the same points on the min face."""
+        """(n, 3) parameters on (or projected onto) the max face
+        -> (n, 3) parameters of the same points on the min face."""
         return self._apply(uvw, self._g, to_max=False)
 
     def map_min_to_max(self, uvw):

@@ -75,7 +75,7 @@ class Surface:
     @property
     def domain(self):
         """((u0, u1), (v0, v1))."""
-        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees))
+        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees, strict=True))
 
     def homogeneous(self):
         """(n_u, n_v, 4): weighted points (w*x, w*y, w*z, w)."""

@@ -11,6 +11,7 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ModelError
+from ..grid import AXES
 from . import basis
 from . import knots as knots_mod
 
@@ -57,7 +58,6 @@ def _axis_index(axis):
         return AXES.index(axis)
     raise ModelError(f"axis: expected 0, 1, 2 or 'u', 'v', 'w', got {axis!r}")
 
-AXES = "uvw"
 
 
 def _readonly(a):
@@ -102,7 +102,8 @@ class Volume:
                 raise ModelError(f"knots[{a}] ({AXES[a]}): expected a list of numbers") from None
             p, n = degrees[a], cps.shape[a]
             if n < p + 1:
-                problems.append(f"control_points: {n} along {AXES[a]} is too few for degree {p} (need at least {p + 1})")
+                problems.append(f"control_points: {n} along {AXES[a]} is too few for degree {p} "
+                                f"(need at least {p + 1})")
             if len(k) != n + p + 1:
                 problems.append(
                     f"knots[{a}] ({AXES[a]}): length {len(k)} does not fit {n} control points of degree {p} "
@@ -111,14 +112,16 @@ class Volume:
                 problems.append(f"knots[{a}] ({AXES[a]}): non-finite value")
             elif np.any(np.diff(k) < 0):
                 i = int(np.argmax(np.diff(k) < 0))
-                problems.append(f"knots[{a}] ({AXES[a]}): not non-decreasing (knot {i} = {k[i]:g} > knot {i + 1} = {k[i + 1]:g})")
+                problems.append(f"knots[{a}] ({AXES[a]}): not non-decreasing "
+                                f"(knot {i} = {k[i]:g} > knot {i + 1} = {k[i + 1]:g})")
             elif k[p] >= k[n]:
                 problems.append(f"knots[{a}] ({AXES[a]}): empty domain [{k[p]:g}, {k[n]:g}]")
             else:
                 inner = k[p + 1:n]
                 mult = np.max(np.unique(inner, return_counts=True)[1]) if inner.size else 0
                 if mult > p:
-                    problems.append(f"knots[{a}] ({AXES[a]}): an interior knot repeats {mult} times, more than the degree {p}")
+                    problems.append(f"knots[{a}] ({AXES[a]}): an interior knot repeats {mult} times, "
+                                    f"more than the degree {p}")
             knots.append(k)
         w = None
         if self.weights is not None:
@@ -134,7 +137,8 @@ class Volume:
         if problems:
             raise ModelError("; ".join(problems))
         object.__setattr__(self, "degrees", degrees)
-        object.__setattr__(self, "knots", tuple(_readonly(self._clamped(k, p)) for k, p in zip(knots, degrees)))
+        object.__setattr__(self, "knots", tuple(_readonly(self._clamped(k, p))
+                                                for k, p in zip(knots, degrees, strict=True)))
         object.__setattr__(self, "control_points", _readonly(cps))
         object.__setattr__(self, "weights", None if w is None else _readonly(w))
 
@@ -161,7 +165,7 @@ class Volume:
     @property
     def domain(self):
         """((u0, u1), (v0, v1), (w0, w1))."""
-        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees))
+        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees, strict=True))
 
     @property
     def domain_array(self):
@@ -199,7 +203,7 @@ class Volume:
     @cached_property
     def _tables(self):
         fast = _fast_module()
-        return tuple(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees))
+        return tuple(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees, strict=True))
 
     def _check_uvw(self, uvw):
         uvw = np.asarray(uvw, dtype=float)
@@ -250,7 +254,9 @@ class Volume:
         iv = sv[:, None] - pv + np.arange(pv + 1)
         iw = sw[:, None] - pw + np.arange(pw + 1)
         local = self._net[iu[:, :, None, None], iv[:, None, :, None], iw[:, None, None, :]]
-        s = lambda du, dv, dw: np.einsum("ni,nj,nk,nijkd->nd", bu[:, du], bv[:, dv], bw[:, dw], local, optimize=True)
+        def s(du, dv, dw):
+            return np.einsum("ni,nj,nk,nijkd->nd", bu[:, du], bv[:, dv], bw[:, dw], local, optimize=True)
+
         h = s(0, 0, 0)
         if not want_der:
             return h, None
@@ -285,7 +291,8 @@ class Volume:
         # Basis once per axis, then contract w, v, u in turn (cost ~ a*b*c*n_u*d for the last step).
         u, v, w = (np.atleast_1d(np.asarray(x, dtype=float)).ravel() for x in (u, v, w))
         order = 1 if want_der else 0
-        Bu, Bv, Bw = (basis.basis_matrix(k, p, t, order) for k, p, t in zip(self.knots, self.degrees, (u, v, w)))
+        Bu, Bv, Bw = (basis.basis_matrix(k, p, t, order)
+                      for k, p, t in zip(self.knots, self.degrees, (u, v, w), strict=True))
         net = self._net
         cw = [np.einsum("ck,ijkd->ijcd", Bw[o], net, optimize=True) for o in range(order + 1)]
         bv = [np.einsum("bj,ijcd->ibcd", Bv[0], cw[0], optimize=True)]
@@ -308,7 +315,8 @@ class Volume:
         return h
 
     def derivatives_grid(self, u, v, w):
-        """Tensor grid: (a,), (b,), (c,) -> points (a, b, c, 3) and partials (a, b, c, 3, 3), [.., :, k] = d/d param k."""
+        """Tensor grid: (a,), (b,), (c,)
+        -> points (a, b, c, 3) and partials (a, b, c, 3, 3), [.., :, k] = d/d param k."""
         h, hd = self._grid_sums(u, v, w, True)
         if not self.is_rational:
             return h, hd
