@@ -666,7 +666,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
                         f"{thin[0].get('hole_piece')}) have pins below the printable minimum (radius down to {r:g} "
                         f"mm, length down to {length:g} mm; expected at least {PIN_MIN_RADIUS_MM:g} and "
                         f"{PIN_MIN_LENGTH_MM:g} mm)")
-    gaps = _face_gaps(meshes, face_clearance) if face_clearance > 0 else []
+    gaps = _face_gaps(meshes, face_clearance, _shared_faces(report)) if face_clearance > 0 else []
     closed = [g for g in gaps if g[2] < 0.7 * face_clearance]
     if closed:
         g = min(closed, key=lambda x: x[2])
@@ -690,8 +690,23 @@ def check_printability(report: dict, meshes: dict) -> dict:
             "failures": failures, "warnings": warnings}
 
 
-def _face_gaps(meshes, face_clearance):
-    """Neighbours (pieces whose boxes come within 3 face clearances) -> [(id, id, median gap, smallest gap) mm].
+def _shared_faces(report):
+    """{frozenset of two piece ids} that share a cut face by report.json's contacts, or None when it lists none."""
+    contacts = report.get("contacts")
+    if not isinstance(contacts, list) or not contacts:
+        return None
+    pairs = set()
+    for c in contacts:
+        ids = c.get("pieces") if isinstance(c, dict) else None
+        if isinstance(ids, list) and len(ids) == 2 and all(isinstance(x, str) for x in ids):
+            pairs.add(frozenset(ids))
+    return pairs
+
+
+def _face_gaps(meshes, face_clearance, shared=None):
+    """Neighbours (pieces whose boxes come within 3 face clearances and, given `shared`, that share a cut face:
+    pieces meeting only at a pole or along an edge have no faces to hold apart) -> [(id, id, median gap, smallest
+    gap) mm].
     The median is over the first piece's vertices that have a vertex of the other within 3 clearances, each to the
     nearest such vertex: both sides of a cut face share one triangulation, each set back by half the clearance, so
     matching vertices sit one clearance apart, and 0 where the faces close. The smallest gap is the engine's, over
@@ -706,7 +721,7 @@ def _face_gaps(meshes, face_clearance):
         for k in range(i + 1, len(ids)):
             lo = np.maximum(bounds[i, 0], bounds[k, 0]) - reach
             hi = np.minimum(bounds[i, 1], bounds[k, 1]) + reach
-            if np.any(hi < lo):
+            if np.any(hi < lo) or (shared is not None and frozenset((ids[i], ids[k])) not in shared):
                 continue
             va, vb = np.asarray(meshes[ids[i]].vertices), np.asarray(meshes[ids[k]].vertices)
             dist, _ = cKDTree(vb).query(va, distance_upper_bound=reach)

@@ -272,7 +272,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
           allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
-    from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces
+    from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces, check_printability
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
     from .joint import piece_joints_report
@@ -410,6 +410,13 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         report["mesh"] = mesh_report
     if texture_report is not None:
         report["texture"] = texture_report
+    with timer("check", progress):
+        # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
+        # labels) is judged before it is written, so a build never passes what its own check refuses
+        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in pieces})
+    if report["checks"]["printability"]["failures"]:
+        raise GeometryError(f"{spec.name}: not printable as laid out: "
+                            f"{'; '.join(report['checks']['printability']['failures'])}")
     with timer("export", progress):
         report["timings_s"] = timer.timings
         write_build(target, pieces, report, fmt=ext, force=force, dowels=dowels, colors=colors, extras=extras,
