@@ -388,10 +388,14 @@ def test_sigterm_stops_cleanly_and_leaves_no_temporary_folder(tmp_path):
 
 @pytest.mark.slow
 def test_sigterm_to_a_running_build_process(tmp_path):
-    spec = _spec(tmp_path)
+    # a build of a minute or more (64 randomized pieces at 0.05 mm), so that the signal lands inside it however fast
+    # the machine is; loading the model alone takes a second or two
+    spec = _spec(tmp_path, grid=[4, 4, 4], randomize={"seed": 1, "amplitude": 0.2},
+                 output={"tolerance": 0.05})
     proc = subprocess.Popen([sys.executable, "-m", "volpuzzle.cli", "build", str(spec), "--jobs", "1"],
                             stderr=subprocess.PIPE, cwd=tmp_path)
-    time.sleep(6)  # well inside the pipeline (loading the model alone takes seconds)
+    time.sleep(6)
+    assert proc.poll() is None, "the build ended before the signal: the test needs a longer build"
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, err
