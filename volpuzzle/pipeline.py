@@ -154,6 +154,11 @@ def prepare(spec, timer=None, progress=None):
     from .limits import check_model_limits, check_spec_limits
 
     check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
+    timer = timer or Timer()
+    with timer("load", progress):
+        model = load_model_for(spec)
+        check_model_limits(spec, model.volume)
+    # the geometry engine and trimesh (about 2 s to import) only once the work is known to fit
     from .joint import place_joints, require_joined
     from .mapping import Map
     from .randomize import family_from_spec
@@ -161,10 +166,6 @@ def prepare(spec, timer=None, progress=None):
     from .tile import tile
     from .verify import verify_model, verify_warp
 
-    timer = timer or Timer()
-    with timer("load", progress):
-        model = load_model_for(spec)
-        check_model_limits(spec, model.volume)
     vol = model.volume
     closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
     if closed:  # a shell's closed direction is periodic whether or not the spec says so
