@@ -5,15 +5,16 @@ import builtins
 import json
 import os
 import shutil
-from types import SimpleNamespace
 
 import pytest
 import trimesh
 from conftest import DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_hostile import _pieces
+from test_hostile import _report as _boxes_report
 
-from volpuzzle.check import check_directory, check_pieces
+from volpuzzle.check import check_directory
 from volpuzzle.errors import VolpuzzleError
 from volpuzzle.export import write_build
 from volpuzzle.io import load_model
@@ -25,14 +26,8 @@ FAST = settings(max_examples=40, deadline=None, suppress_health_check=list(Healt
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fuzz")
-    pieces = []
-    for i in range(2):
-        b = trimesh.creation.box(extents=(10, 10, 10))
-        b.apply_translation([10 * i + 5, 5, 5])
-        pieces.append(SimpleNamespace(id=f"p{i}-0-0", cell=(i, 0, 0), mesh=b, volume=float(b.volume),
-                                      body_volume=float(b.volume), triangles=len(b.faces)))
-    report = {"model": {"volume_mm3": 2000.0}, "joints": [],
-              "checks": check_pieces([(p.id, p.mesh) for p in pieces], 2000.0)}
+    pieces = _pieces()
+    report = _boxes_report(pieces)
     out = write_build(tmp / "out", pieces, report)
     outside = tmp / "outside"
     outside.mkdir()

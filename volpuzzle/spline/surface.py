@@ -13,15 +13,9 @@ import numpy as np
 from ..errors import ModelError
 from . import basis
 from . import knots as knots_mod
-from .volume import Volume
+from .volume import Volume, _readonly
 
 _W_KNOTS = np.array([0.0, 0.0, 1.0, 1.0])
-
-
-def _readonly(a):
-    a = np.array(a, dtype=float, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)
