@@ -201,40 +201,31 @@ def _ordered(path, root, geoms):
     return out
 
 
-def read(path):
+def _patches(path, dims):
+    """Every geometry of `dims` parameters (3: volumes, 2: surfaces) in the file, in patch order -> (list, meta)."""
     root = _parse(path)
     if root.tag != "xml":
         raise fail(path, "", f"expected a G+Smo file with an <xml> root element, got <{root.tag}>")
     geoms = list(root.iter("Geometry"))
-    # Curves and surfaces (boundaries, say) may sit beside the volumes; only trivariate types are patches.
-    vol_geoms = [g for g in _ordered(path, root, geoms) if (g.get("type") or "").endswith("3")]
-    if not vol_geoms:
+    # Curves and surfaces (boundaries, say) may sit beside the volumes: only the types of `dims` are patches here.
+    kept = [g for g in _ordered(path, root, geoms) if (g.get("type") or "").endswith(str(dims))]
+    if not kept:
         found = sorted({g.get("type") or "?" for g in geoms})
         have = f" (found: {', '.join(found)})" if found else ""
-        raise fail(path, "Geometry", f"no volume in the file{have}; expected a Geometry of type "
-                                     f"{' or '.join(SUPPORTED)}")
-    vols = []
-    for i, g in enumerate(vol_geoms):
+        what, types = ("volume", SUPPORTED) if dims == 3 else ("surface", SURFACES)
+        raise fail(path, "Geometry", f"no {what} in the file{have}; expected a Geometry of type {' or '.join(types)}")
+    out = []
+    for i, g in enumerate(kept):
         gid = g.get("id")
-        label = f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else "")
-        vols.append(_geometry(path, g, label))
-    return vols, {"units": None}
+        out.append(_geometry(path, g, f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else ""), dims=dims))
+    return out, {"units": None}
+
+
+def read(path):
+    """Every TensorBSpline3 / TensorNurbs3 geometry in the file, in patch order -> (list[Volume], meta)."""
+    return _patches(path, 3)
 
 
 def read_surfaces(path):
     """Every TensorBSpline2 / TensorNurbs2 geometry in the file, in patch order -> (list[Surface], meta)."""
-    root = _parse(path)
-    if root.tag != "xml":
-        raise fail(path, "", f"expected a G+Smo file with an <xml> root element, got <{root.tag}>")
-    geoms = list(root.iter("Geometry"))
-    surf_geoms = [g for g in _ordered(path, root, geoms) if (g.get("type") or "").endswith("2")]
-    if not surf_geoms:
-        found = sorted({g.get("type") or "?" for g in geoms})
-        have = f" (found: {', '.join(found)})" if found else ""
-        raise fail(path, "Geometry", f"no surface in the file{have}; expected a Geometry of type "
-                                     f"{' or '.join(SURFACES)}")
-    out = []
-    for i, g in enumerate(surf_geoms):
-        gid = g.get("id")
-        out.append(_geometry(path, g, f"Geometry[{i}]" + (f" (id {gid})" if gid is not None else ""), dims=2))
-    return out, {"units": None}
+    return _patches(path, 2)

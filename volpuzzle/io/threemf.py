@@ -316,8 +316,8 @@ def read_3mf(path, strict: bool = True, with_units: bool = False):
         return _read_model(path, strict, with_units)
 
 
-def _read_model(path, strict, with_units):
-    _, L, w = _lib()
+def _open_model(w, path, strict):
+    """lib3mf's model of the file and its reader's warnings -> (model, [sentences]); ModelError when unreadable."""
     try:
         model = w.CreateModel()
         reader = model.QueryReader("3mf")
@@ -329,6 +329,12 @@ def _read_model(path, strict, with_units):
             warnings.append(f"{msg} (code {code})")
     except Exception as e:
         raise ModelError(f"{path}: not a readable 3MF file: {e}") from e
+    return model, warnings
+
+
+def _read_model(path, strict, with_units):
+    _, L, w = _lib()
+    model, warnings = _open_model(w, path, strict)
     if strict and warnings:
         raise ModelError(f"{path}: 3MF reader warnings in strict mode: {'; '.join(warnings)}")
     out = []
@@ -361,13 +367,7 @@ def read_triangle_colors(path, strict: bool = True):
         raise ModelError(f"{path}: no such 3MF file")
     with _LOCK:
         _, L, w = _lib()
-        try:
-            model = w.CreateModel()
-            reader = model.QueryReader("3mf")
-            reader.SetStrictModeActive(bool(strict))
-            reader.ReadFromFile(str(path))
-        except Exception as e:
-            raise ModelError(f"{path}: not a readable 3MF file: {e}") from e
+        model, _ = _open_model(w, path, strict)
         out = {}
         items = model.GetBuildItems()
         while items.MoveNext():
