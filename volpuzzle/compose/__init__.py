@@ -24,9 +24,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import Delaunay
 
-from . import geometry
-from .errors import GeometryError
-from .grid import AXES
+from .. import geometry
+from ..errors import GeometryError
+from ..grid import AXES
 
 # Measured points (edge midpoints and quarter points, triangle centroids) are held to this fraction of the
 # tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
@@ -966,7 +966,7 @@ def _joint_solids(joints, index):
     pins, holes, dpins, dholes = [], [], [], []
     if not joints:
         return pins, holes, dpins, dholes
-    from . import joint as joint_mod  # a later stage's helpers; imported only when there are joints
+    from .. import joint as joint_mod  # a later stage's helpers; imported only when there are joints
 
     for j in joints:
         style = getattr(j, "style", "pin")
