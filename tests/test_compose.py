@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
+from volpuzzle.compose import cell_joints, pool
+from volpuzzle.compose import sampling as compose_sampling
 from volpuzzle.errors import GeometryError
 from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
@@ -267,9 +269,9 @@ def test_shared_faces_have_identical_vertices_and_triangles(name):
 @pytest.mark.parametrize("main_takes", [False, True])
 def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
     # with main_takes False the workers build every piece; with True this process builds alongside them
-    monkeypatch.setattr(C, "_POOL_MIN_PIECES", 0)
-    monkeypatch.setattr(C, "_POOL_MIN_SECONDS", 0.0)
-    monkeypatch.setattr(C, "_MAIN_TAKES_PIECES", main_takes)
+    monkeypatch.setattr(pool, "_POOL_MIN_PIECES", 0)
+    monkeypatch.setattr(pool, "_POOL_MIN_SECONDS", 0.0)
+    monkeypatch.setattr(pool, "_MAIN_TAKES_PIECES", main_takes)
     vol, t, fmap, sampling, pieces = _built("twisted")
     seen = []
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
@@ -283,7 +285,7 @@ def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
 
 def test_small_puzzles_stay_serial(monkeypatch):
     _, t, fmap, sampling, _ = _built("twisted")
-    monkeypatch.setattr(C.concurrent.futures, "ProcessPoolExecutor", None)  # would fail if a pool were made
+    monkeypatch.setattr(pool.concurrent.futures, "ProcessPoolExecutor", None)  # would fail if a pool were made
     assert len(C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling)) == len(t.cells)
 
 
@@ -320,7 +322,7 @@ def test_tolerance_must_be_positive():
 
 
 def test_tolerance_too_fine(monkeypatch):
-    monkeypatch.setattr(C, "_MAX_EDGE_SAMPLES", 8)
+    monkeypatch.setattr(compose_sampling, "_MAX_EDGE_SAMPLES", 8)
     vol = _ring(sweep=120.0, n_w=6)
     with pytest.raises(GeometryError, match="needs more than 8 samples along w on one cell edge"):
         C.sample_parameters(tile(vol, (1, 1, 1)), Map(vol, None, _orientation(vol)), 0.01)
@@ -370,7 +372,7 @@ def test_domain_refinement_splits_bent_edges():
     fmap = Map(vol, None, _orientation(vol))
     q = np.array([[0.5, 0.5, 0.0], [0.5, 0.5, 1.0], [0.2, 0.5, 0.5]])
     f = np.array([[0, 1, 2]])
-    q2, xyz, f2 = C._refine(q, fmap.evaluate(q), f, np.zeros(3, dtype=int), fmap.evaluate, 0.05)
+    q2, xyz, f2 = cell_joints._refine(q, fmap.evaluate(q), f, np.zeros(3, dtype=int), fmap.evaluate, 0.05)
     assert len(f2) > 8
     e = np.concatenate([f2[:, [0, 1]], f2[:, [1, 2]], f2[:, [2, 0]]])
     mid = fmap.evaluate(0.5 * (q2[e[:, 0]] + q2[e[:, 1]]))

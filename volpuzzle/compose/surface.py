@@ -1,0 +1,187 @@
+"""A cell's closed surface in mm from the shared face tessellation, its boundary in its own parameters, and the
+face clearance: cut faces set back by half of it on each side."""
+
+import numpy as np
+
+from .. import geometry
+from .lattice import _others, _seen_through
+from .sampling import _WELD_MM
+
+_FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
+
+
+def _cell_ids(cell, sampling, lat=None):
+    """Triangles of the cell's boundary as global vertex ids (t, 3), oriented outward in parameter space."""
+    lat = lat or sampling.lattice
+    out = []
+    for key, reverse, _, _ in lat.cell_faces(tuple(cell.index)):
+        fm = sampling.faces[key]
+        t = fm.ids[fm.tris]
+        out.append(t[:, [0, 2, 1]] if reverse else t)
+    return np.concatenate(out)
+
+
+def cell_parameter_mesh(cell, sampling):
+    """The cell box's boundary in its own parameters, as the faces' tessellation places it: uvw (n, 3), ids (n,)
+    (global vertex ids: xyz = sampling.xyz[ids]), faces (m, 3) rows of uvw, outward in parameter space, and
+    face_of (n,) int: bit 2a + side set for a point on the min (side 0) or max (side 1) face along a."""
+    lat = sampling.lattice
+    box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
+    uvw, ids, tris, bits = [], [], [], []
+    n = 0
+    for key, reverse, seam, (a, _) in lat.cell_faces(tuple(cell.index)):
+        fm = sampling.faces[key]
+        b, c = _others(a)
+        st = _seen_through(np.asarray(fm.st), seam)
+        q = np.empty((len(st), 3))
+        q[:, a] = box[0 if reverse else 1, a]
+        q[:, b] = box[0, b] + st[:, 0] * (box[1, b] - box[0, b])
+        q[:, c] = box[0, c] + st[:, 1] * (box[1, c] - box[0, c])
+        # exact box values on the rectangle's sides, so that the faces meeting at a box edge share their points
+        for k, col in ((b, 0), (c, 1)):
+            q[st[:, col] == 0.0, k] = box[0, k]
+            q[st[:, col] == 1.0, k] = box[1, k]
+        uvw.append(q)
+        ids.append(fm.ids)
+        t = fm.tris[:, [0, 2, 1]] if reverse else fm.tris
+        tris.append(t + n)
+        n += len(st)
+    uvw, ids, tris = np.concatenate(uvw), np.concatenate(ids), np.concatenate(tris)
+    # one point per id, unless the id sits at two places of this box (a cell closing on itself across a seam)
+    span = box[1] - box[0]
+    _, first_of = np.unique(ids, return_index=True)
+    ref = uvw[first_of[np.searchsorted(ids[first_of], ids)]]
+    far = np.max(np.abs(uvw - ref) / span, axis=1) > 1e-6
+    place = np.zeros((len(uvw), 3), dtype=np.int64)
+    place[far] = np.round((uvw[far] - box[0]) / span * 2 ** 20).astype(np.int64)
+    _, first, inv = np.unique(np.column_stack([ids, place]), axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    uvw, ids, tris = uvw[first], ids[first], inv[tris]
+    tol = 1e-9 * span
+    bits = np.zeros(len(uvw), dtype=np.int64)
+    for a in range(3):
+        bits[np.abs(uvw[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
+        bits[np.abs(uvw[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
+    return uvw, ids, tris, bits
+
+
+def _is_cut_face(own, sampling):
+    """A cell face (a, g) is a cut face, shared with a neighbour, when it is inside the grid or on a periodic seam."""
+    a, g = own
+    n = len(sampling.breaks[a]) - 1
+    return 0 < g[a] < n or any(s[0] == a for s in sampling.seams)
+
+
+def _setback(xyz, faces, slot, cut, half):
+    """Displacements (n, 3) that set every cut face back by `half` mm along its normal while the cell's outer faces
+    stay where they are. xyz (n, 3), faces (m, 3) outward, slot (m,) the cell face (0..5) of each triangle, cut (6,)
+    bool. Per point (points closer than _WELD_MM count as one: collapsed faces repeat a point under several ids), the
+    displacement d is the smallest with d . n_f = -half on each cut face f it lies on and d . n_f = 0 on each outer
+    face: a corner of two cut faces moves along both normals, a point where a cut face meets the outside slides
+    along the outside. Points inside one face near its edge then follow the edge's slide along the face, fading out
+    over _FADE half-clearances, so that none is overtaken by the moving edge (a fold)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    nv = len(xyz)
+    cluster = np.arange(nv)
+    pairs = cKDTree(xyz).query_pairs(_WELD_MM, output_type="ndarray")
+    if len(pairs):
+        graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
+        _, cluster = connected_components(graph, directed=False)
+    nc = int(cluster.max()) + 1
+    t = xyz[faces]
+    cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    normals = np.zeros((nc, 6, 3))
+    for k in range(3):
+        np.add.at(normals, (cluster[faces[:, k]], slot), cross)
+    size = np.linalg.norm(normals, axis=2)
+    on = size > 1e-12
+    unit = np.where(on[..., None], normals / np.maximum(size, 1e-300)[..., None], 0.0)
+    target = np.where(on & np.asarray(cut)[None, :], -float(half), 0.0)
+    moving = np.flatnonzero(np.any(target != 0.0, axis=1))
+    disp = np.zeros((nc, 3))
+    if not len(moving):
+        return disp[cluster]
+    # minimum-norm least squares, batched; nearly parallel constraints are dropped rather than amplified
+    pinv = np.linalg.pinv(unit[moving], rcond=0.05)
+    d = np.einsum("nij,nj->ni", pinv, target[moving])
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    disp[moving] = d * np.minimum(1.0, 4.0 * half / np.maximum(length, 1e-300))
+    # where: clusters on one face only; edges: triangle edges along a line where two faces meet
+    pos = np.zeros((nc, 3))
+    pos[cluster] = xyz
+    count = on.sum(axis=1)
+    e = cluster[np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])]
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    common = on[e[:, 0]] & on[e[:, 1]]
+    e, common = e[common.sum(axis=1) >= 2], common[common.sum(axis=1) >= 2]
+    single = np.flatnonzero(count == 1)
+    if not len(e) or not len(single):
+        return disp[cluster]
+    reach = _FADE * half
+    p0, p1 = pos[e[:, 0]], pos[e[:, 1]]
+    seg = p1 - p0
+    seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-300)
+    mid = 0.5 * (p0 + p1)
+    radius = 0.5 * float(np.sqrt(seg_len2.max())) + reach
+    near = cKDTree(mid).query_ball_point(pos[single], radius)
+    rows = np.repeat(single, [len(n) for n in near])
+    cols = np.fromiter((j for n in near for j in n), dtype=np.int64, count=len(rows))
+    face_of = np.argmax(on[rows], axis=1)
+    ok = common[cols, face_of]  # the edge bounds the point's own face
+    rows, cols, face_of = rows[ok], cols[ok], face_of[ok]
+    if not len(rows):
+        return disp[cluster]
+    lam = np.clip(np.einsum("ij,ij->i", pos[rows] - p0[cols], seg[cols]) / seg_len2[cols], 0.0, 1.0)
+    dist = np.linalg.norm(p0[cols] + lam[:, None] * seg[cols] - pos[rows], axis=1)
+    # the nearest edge of each point
+    order = np.lexsort((dist, rows))
+    rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
+    first = np.r_[True, rows[1:] != rows[:-1]]
+    rows, cols, face_of, lam, dist = rows[first], cols[first], face_of[first], lam[first], dist[first]
+    weight = np.clip(1.0 - dist / reach, 0.0, 1.0)
+    slide = (1.0 - lam)[:, None] * disp[e[cols, 0]] + lam[:, None] * disp[e[cols, 1]]
+    n = unit[rows, face_of]
+    slide -= np.einsum("ij,ij->i", slide, n)[:, None] * n  # only along the point's own face
+    disp[rows] += weight[:, None] * slide
+    return disp[cluster]
+
+
+def cell_surface(cell, sampling, fmap, face_clearance=0.0):
+    """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int). With
+    face_clearance > 0 the cut faces are set back by half of it (the neighbour sets its side back by the other
+    half), the outer faces stay exact."""
+    lat = sampling.lattice
+    keys, slots, cut = [], [], np.zeros(6, bool)
+    for k, (key, reverse, _, own) in enumerate(lat.cell_faces(tuple(cell.index))):
+        fm = sampling.faces[key]
+        t = fm.ids[fm.tris]
+        keys.append(t[:, [0, 2, 1]] if reverse else t)
+        slots.append(np.full(len(t), k))
+        cut[k] = _is_cut_face(own, sampling)
+    keys = np.concatenate(keys)
+    uniq, faces = np.unique(keys.ravel(), return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    if fmap.orientation < 0:
+        faces = faces[:, [0, 2, 1]]
+    xyz = sampling.xyz[uniq]
+    if face_clearance > 0 and cut.any():
+        xyz = xyz + _setback(xyz, faces, np.concatenate(slots), cut, 0.5 * face_clearance)
+    return geometry.weld(xyz, faces, _WELD_MM)
+
+
+def face_clearance_volume(sampling, face_clearance):
+    """mm^3 that a face clearance takes out of the puzzle: the clearance times the area of every cut face, each
+    shared face counted once (corners and edges add terms of order clearance^2 only)."""
+    if face_clearance <= 0:
+        return 0.0
+    area = 0.0
+    for key, fm in sampling.faces.items():
+        a, g = key[0], key[1:]
+        if not _is_cut_face((a, g), sampling):
+            continue
+        t = sampling.xyz[fm.ids[fm.tris]]
+        area += float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+    return face_clearance * area

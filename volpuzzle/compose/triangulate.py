@@ -1,0 +1,335 @@
+"""One grid face's triangulation in its parameter rectangle [0, 1]^2, between the samples of its four edges: a
+Delaunay triangulation of the boundary and a coarse seed, then longest-edge bisection of every triangle that misses F
+(all faces in one batch per round); a face that F squeezes onto a line is laddered between its rails instead."""
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from ..errors import GeometryError
+from ..grid import AXES
+from .lattice import _others
+
+_MAX_FACE_POINTS = 100000  # per grid face, on average
+_ROUNDS = 60
+_BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
+
+
+def _merge(values, new, eps):
+    """Sorted union of values and new, skipping new values within eps of one already there."""
+    values = np.asarray(values, dtype=float)
+    new = np.asarray(new, dtype=float)
+    if new.size == 0:
+        return values, False
+    pos = np.clip(np.searchsorted(values, new), 1, len(values) - 1)
+    near = np.minimum(np.abs(values[pos] - new), np.abs(values[pos - 1] - new)) <= eps
+    new = np.unique(new[~near])
+    if new.size == 0:
+        return values, False
+    keep = np.concatenate([[True], np.diff(new) > eps])
+    return np.union1d(values, new[keep]), True
+
+
+def _deviation(d, corners):
+    """Distance (m, k) of points from their triangles' planes, given their offsets d (m, k, 3) from the linear
+    interpolant and the triangles' corners (m, 3, 3) in mm: only the part across the surface counts (sliding along
+    it is a change of parameter, not of shape). A degenerate triangle (on a collapsed axis) counts the whole offset."""
+    n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    size = np.linalg.norm(n, axis=1)
+    scale = np.max(np.linalg.norm(corners - corners[:, :1], axis=2), axis=1)
+    flat = size <= 1e-9 * scale ** 2
+    n = np.divide(n, size[:, None], out=np.zeros_like(n), where=~flat[:, None])
+    out = np.abs(np.einsum("mkd,md->mk", d, n))
+    out[flat] = np.linalg.norm(d[flat], axis=2)
+    return out
+
+
+def _edge_ref(lat, axis, start, ts, ids):
+    """The samples of the edge along axis from grid vertex start, in increasing local order: (t (k,), ids (k,))."""
+    key, rev = lat.edge(axis, start)
+    t, i = ts[key], ids[key]
+    return (1.0 - t[::-1], i[::-1]) if rev else (t, i)
+
+
+def _face_edges(key):
+    """The four edges of a face in its own frame: bottom (t=0), right (s=1), top (t=1), left (s=0), as
+    (axis, start) pairs; each runs in increasing s or t."""
+    a, g = key[0], list(key[1:])
+    b, c = _others(a)
+    gb, gc = list(g), list(g)
+    gb[b] += 1
+    gc[c] += 1
+    return (b, g), (c, gb), (b, gc), (c, g)
+
+
+def _chains(lat, key, ts, ids):
+    """-> four (st (k, 2), ids (k,)) chains, each in increasing s or t: bottom, right, top, left."""
+    out = []
+    for k, (axis, start) in enumerate(_face_edges(key)):
+        t, i = _edge_ref(lat, axis, start, ts, ids)
+        st = np.empty((len(t), 2))
+        if k in (0, 2):
+            st[:, 0], st[:, 1] = t, 0.0 if k == 0 else 1.0
+        else:
+            st[:, 0], st[:, 1] = 1.0 if k == 1 else 0.0, t
+        out.append((st, i))
+    return out
+
+
+def _polygon(chains):
+    """The four chains -> the face boundary counter-clockwise in (s, t): st (k, 2), ids (k,), each corner once."""
+    (sb, ib), (sr, ir), (su, iu), (sl, il) = chains
+    st = np.concatenate([sb[:-1], sr[:-1], su[::-1][:-1], sl[::-1][:-1]])
+    ids = np.concatenate([ib[:-1], ir[:-1], iu[::-1][:-1], il[::-1][:-1]])
+    return st, ids
+
+
+def _chain_local(chains):
+    """Positions in _polygon's order of the four chains' points (each in increasing s or t)."""
+    lens = [len(c[1]) for c in chains]
+    total = sum(lens) - 4
+    o_r = lens[0] - 1
+    o_u = o_r + lens[1] - 1
+    o_l = o_u + lens[2] - 1
+    bottom = np.arange(lens[0])
+    right = o_r + np.arange(lens[1])
+    top = o_u + (lens[2] - 1 - np.arange(lens[2]))
+    left = (o_l + (lens[3] - 1 - np.arange(lens[3]))) % total
+    return bottom, right, top, left
+
+
+def _ladder(rail_l, rail_r, cap_lo, cap_hi):
+    """Triangles (as id triples) of a face that F squeezes across the rails' direction: rails l and r carry the same
+    levels, and every triangle joins only neighbouring levels, so after welding each has a repeated vertex.
+    cap_lo runs from l[0] to r[0], cap_hi from l[-1] to r[-1]."""
+    n = len(rail_l) - 1
+    L, R = rail_l, rail_r
+    tris = []
+    if n == 1:
+        tris += [(L[1], cap_lo[k], cap_lo[k + 1]) for k in range(len(cap_lo) - 1)]
+        tris += [(R[0], cap_hi[k], cap_hi[k + 1]) for k in range(len(cap_hi) - 1)]
+        return tris
+    tris += [(L[1], cap_lo[k], cap_lo[k + 1]) for k in range(len(cap_lo) - 1)]
+    tris.append((L[1], R[0], R[1]))
+    for i in range(1, n - 1):
+        tris += [(L[i], R[i], R[i + 1]), (L[i], R[i + 1], L[i + 1])]
+    tris += [(R[n - 1], cap_hi[k], cap_hi[k + 1]) for k in range(len(cap_hi) - 1)]
+    tris.append((L[n - 1], R[n - 1], L[n]))
+    return tris
+
+
+def _signed_area(p, tris):
+    a, b, c = p[tris[:, 0]], p[tris[:, 1]], p[tris[:, 2]]
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+
+
+def _ccw(p, tris):
+    area = _signed_area(p, tris)
+    tris = np.where((area < 0)[:, None], tris[:, [0, 2, 1]], tris)
+    return tris, np.abs(area)
+
+
+class _FaceWork:
+    """One canonical face under refinement: points st (k, 2) in its rectangle, their xyz, the first nb on the
+    boundary (counter-clockwise), scaled by the face's lengths in mm for well-shaped triangles."""
+
+    def __init__(self, key, st_b, ids_b, xyz_b, scale, seed):
+        self.key = key
+        self.nb = len(st_b)
+        self.ids_b = ids_b
+        self.st = np.concatenate([st_b, seed])
+        self.xyz = np.concatenate([xyz_b, np.full((len(seed), 3), np.nan)])
+        self.scale = np.asarray(scale, dtype=float)
+        self.tris = None
+        self.worst = 0.0
+        self.rng = np.random.default_rng([int(x) for x in key])
+
+    def triangulate(self):
+        nb, n = self.nb, len(self.st)
+        s, t = self.st[:, 0], self.st[:, 1]
+        true = self.st * self.scale
+        total = float(np.prod(self.scale))
+        for eps in _BULGE:
+            # bow every side outward (zero at the corners) so that collinear boundary points become strictly convex:
+            # the hull is then exactly the boundary, and Delaunay keeps every boundary segment
+            q = np.stack([(s - 0.5) * (1 + eps * 4 * t * (1 - t)), (t - 0.5) * (1 + eps * 4 * s * (1 - s))], 1)
+            try:
+                tri = Delaunay(q * self.scale).simplices.astype(np.int64)
+            except Exception:  # qhull refuses (e.g. too few distinct points): try a smaller bulge, then give up
+                continue
+            tri, area = _ccw(true, tri)
+            if len(np.unique(tri)) != n or np.min(area) <= 1e-12 * total or abs(area.sum() - total) > 1e-9 * total:
+                continue
+            e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+            bnd = np.sort(np.stack([np.arange(nb), (np.arange(nb) + 1) % nb], 1), axis=1)
+            have = set(map(tuple, e[(e[:, 1] < nb)]))
+            if all(tuple(x) in have for x in bnd):
+                self.tris = tri
+                return tri
+        raise GeometryError(f"compose: could not triangulate the {AXES[self.key[0]]} face at grid {self.key[1:]} "
+                            f"with {n} points (internal error)")
+
+
+def _seed(scale, knots_s, knots_t):
+    """A coarse interior grid (about 4 cells across the longer side) plus points on the interior knot lines."""
+    h = max(scale) / 4.0
+    ks, kt = (max(2, int(round(x / h))) for x in scale)
+    s = np.arange(1, ks) / ks
+    t = np.arange(1, kt) / kt
+    s_all, _ = _merge(np.concatenate([[0.0], s, [1.0]]), knots_s, 1e-9)
+    t_all, _ = _merge(np.concatenate([[0.0], t, [1.0]]), knots_t, 1e-9)
+    pts = [np.stack(np.meshgrid(s, t_all, indexing="ij"), -1).reshape(-1, 2),
+           np.stack(np.meshgrid(s_all, t, indexing="ij"), -1).reshape(-1, 2)]
+    pts = np.unique(np.concatenate(pts), axis=0)
+    # a knot line a hair inside the face (a file's rounded knots next to a split) would leave sliver triangles
+    e = 1e-4
+    return pts[(pts[:, 0] > e) & (pts[:, 0] < 1 - e) & (pts[:, 1] > e) & (pts[:, 1] < 1 - e)]
+
+
+def _member(keys, sorted_keys):
+    """keys (any shape) found in the sorted 1-d sorted_keys: a binary search, cheaper than np.isin's sort of both."""
+    pos = np.clip(np.searchsorted(sorted_keys, keys), 0, len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+def _refine_faces(works, breaks, fmap, target, tolerance):
+    """Refine every face from its initial Delaunay triangulation, all faces in one batch per round: triangles whose
+    tessellation misses F (at the centroid, the interior edge midpoints and two random points) by more than target
+    have their longest interior edge bisected, with the longest-edge closure of Rivara so that triangles stay well
+    shaped and the mesh conforming. Boundary segments are never split: they are the neighbours' edges.
+    Sets each work's st, xyz and tris. -> the largest error measured on the final triangles."""
+    if not works:
+        return 0.0
+    for w in works:
+        w.triangulate()
+    sizes = np.array([len(w.st) for w in works])
+    off = np.concatenate([[0], np.cumsum(sizes)])
+    st = np.concatenate([w.st for w in works])
+    xyz = np.concatenate([w.xyz for w in works])
+    fid = np.repeat(np.arange(len(works)), sizes)
+    tris = np.concatenate([w.tris + off[k] for k, w in enumerate(works)])
+    big = np.int64(1) << 31
+    bkeys = []
+    for k, w in enumerate(works):
+        i = np.arange(w.nb)
+        e = np.sort(np.stack([i, (i + 1) % w.nb], 1), axis=1) + off[k]
+        bkeys.append(e[:, 0] * big + e[:, 1])
+    bkeys = np.sort(np.concatenate(bkeys))
+    # per face: uvw = base + s ds + t dt
+    base = np.zeros((len(works), 3))
+    ds = np.zeros((len(works), 3))
+    dt = np.zeros((len(works), 3))
+    for k, w in enumerate(works):
+        a, g = w.key[0], w.key[1:]
+        b, c = _others(a)
+        base[k] = [breaks[x][g[x]] for x in range(3)]
+        ds[k, b] = breaks[b][g[b] + 1] - breaks[b][g[b]]
+        dt[k, c] = breaks[c][g[c] + 1] - breaks[c][g[c]]
+
+    axes = np.array([_others(w.key[0]) for w in works])
+
+    def params(p, f):
+        return base[f] + p[:, :1] * ds[f] + p[:, 1:] * dt[f]
+
+    rng = np.random.default_rng(20250101)
+    err = np.full(len(tris), np.nan)
+    # per triangle, computed once when it is made: its edges' keys, which of them are interior, and its longest one
+    keys = np.zeros((len(tris), 3), dtype=np.int64)
+    interior = np.zeros((len(tris), 3), dtype=bool)
+    longest = np.zeros(len(tris), dtype=np.int64)
+    for _round in range(4 * _ROUNDS):
+        todo = np.isnan(xyz[:, 0])
+        if np.any(todo):
+            xyz[todo] = fmap.evaluate(params(st[todo], fid[todo]))
+        new = np.flatnonzero(np.isnan(err))
+        if len(new):
+            tn = tris[new]
+            e = np.stack([tn[:, [0, 1]], tn[:, [1, 2]], tn[:, [2, 0]]], 1)  # (m, 3, 2)
+            k = np.minimum(e[..., 0], e[..., 1]) * big + np.maximum(e[..., 0], e[..., 1])
+            keys[new] = k
+            interior[new] = bkeys[np.clip(np.searchsorted(bkeys, k), 0, len(bkeys) - 1)] != k
+            length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
+            # ties by parameter length, then by position in the triangle: deterministic
+            plen = np.linalg.norm(st[e[..., 0]] - st[e[..., 1]], axis=2)
+            longest[new] = np.argmax(np.where(interior[new], length + 1e-9 * plen, -1.0), axis=1)
+            m = len(new)
+            lam = rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
+            w3 = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
+                                 np.broadcast_to(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), (m, 3, 3))],
+                                axis=1)  # (m, 6, 3): centroid, 2 random, 3 edge midpoints
+            pts = np.einsum("mkj,mjd->mkd", w3, st[tn]).reshape(-1, 2)
+            lin = np.einsum("mkj,mjd->mkd", w3, xyz[tn])
+            f_new = fid[tn[:, 0]]
+            got = fmap.evaluate(params(pts, np.repeat(f_new, 6))).reshape(m, 6, 3)
+            d = _deviation(got - lin, xyz[tn])
+            d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
+            err[new] = d.max(axis=1)
+            # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
+            # splitting mends it inside the face (next to a fixed boundary segment it would only make slivers)
+            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], f_new))
+            ax = axes[f_new]
+            n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
+            c = xyz[tn]
+            n_t = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+            norms = np.linalg.norm(n_s, axis=1) * np.linalg.norm(n_t, axis=1)
+            scale = np.max(np.linalg.norm(c - c[:, :1], axis=2), axis=1)
+            real = (np.linalg.norm(n_t, axis=1) > 1e-9 * scale ** 2) & (norms > 0)
+            cos = np.einsum("md,md->m", n_s, n_t) / np.where(norms > 0, norms, 1.0)
+            turned = real & (cos < 0.0) & np.all(interior[new], axis=1)
+            err[new[turned]] = np.maximum(err[new[turned]], 2 * target + 1.0)
+        bad = err > target
+        if not np.any(bad):
+            break
+        if len(st) > _MAX_FACE_POINTS * len(works):
+            raise GeometryError(
+                f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points per cell face "
+                f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
+        rows = np.arange(len(tris))
+        split = np.unique(keys[rows[bad], longest[bad]])
+        while True:
+            has = _member(keys, split)
+            need = np.any(has, axis=1) & ~has[rows, longest]
+            if not np.any(need):
+                break
+            split = np.union1d(split, keys[rows[need], longest[need]])
+        # new midpoints
+        lo, hi = split // big, split % big
+        mid = len(st) + np.arange(len(split))
+        st = np.concatenate([st, 0.5 * (st[lo] + st[hi])])
+        xyz = np.concatenate([xyz, np.full((len(split), 3), np.nan)])
+        fid = np.concatenate([fid, fid[lo]])
+        touched = np.any(has, axis=1)
+        t = tris[touched]
+        r = longest[touched]
+        k = keys[touched]
+        h = has[touched]
+        n = len(t)
+        idx = np.arange(n)
+        v0, v1, v2 = t[idx, r], t[idx, (r + 1) % 3], t[idx, (r + 2) % 3]
+        ml = mid[np.searchsorted(split, k[idx, r])]
+        h1, h2 = h[idx, (r + 1) % 3], h[idx, (r + 2) % 3]
+        m1 = np.where(h1, mid[np.clip(np.searchsorted(split, k[idx, (r + 1) % 3]), 0, len(split) - 1)], -1)
+        m2 = np.where(h2, mid[np.clip(np.searchsorted(split, k[idx, (r + 2) % 3]), 0, len(split) - 1)], -1)
+        out = [np.stack([v0, ml, v2], 1)[~h2], np.stack([v0, ml, m2], 1)[h2], np.stack([ml, v2, m2], 1)[h2],
+               np.stack([ml, v1, v2], 1)[~h1], np.stack([ml, v1, m1], 1)[h1], np.stack([ml, m1, v2], 1)[h1]]
+        tris = np.concatenate([tris[~touched]] + out)
+        made = sum(len(o) for o in out)
+        err = np.concatenate([err[~touched], np.full(made, np.nan)])
+        keys = np.concatenate([keys[~touched], np.zeros((made, 3), dtype=np.int64)])
+        interior = np.concatenate([interior[~touched], np.zeros((made, 3), dtype=bool)])
+        longest = np.concatenate([longest[~touched], np.zeros(made, dtype=np.int64)])
+    else:
+        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * _ROUNDS} rounds")
+    # back to the faces, in a fixed order
+    tf = fid[tris[:, 0]]
+    order = np.argsort(tf, kind="stable")
+    tris, tf = tris[order], tf[order]
+    tsplit = np.searchsorted(tf, np.arange(len(works) + 1))
+    pf_order = np.argsort(fid, kind="stable")
+    local = np.empty(len(st), dtype=np.int64)
+    psplit = np.searchsorted(fid[pf_order], np.arange(len(works) + 1))
+    for k, w in enumerate(works):
+        pts = pf_order[psplit[k]:psplit[k + 1]]  # the face's points: its first ones, then its midpoints in order
+        local[pts] = np.arange(len(pts))
+        w.st, w.xyz = st[pts], xyz[pts]
+        w.tris = local[tris[tsplit[k]:tsplit[k + 1]]]
+    return float(np.max(err, initial=0.0))
