@@ -22,3 +22,9 @@ def frame_from_direction(n):
     e1 = np.cross(helper, n)
     e1 /= np.linalg.norm(e1)
     return e1, np.cross(n, e1), n
+
+
+def other_axes(axis):
+    """The two axes (b, c), b < c, other than `axis`: a face across `axis` is spanned by them."""
+    b, c = (k for k in range(3) if k != axis)
+    return b, c

@@ -1,41 +1,53 @@
 """A cell's pins and holes: solids in mm united and subtracted on its body, or Booleans in the domain on its own
 tessellated parameter box, mapped through F and refined where the new edges bend."""
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .. import geometry
-from .lattice import _others
+from ..grid import other_axes
 from .sampling import _SAFETY, _WELD_MM
 from .surface import cell_parameter_mesh
 
 
+class _CellJoints(NamedTuple):
+    """A cell's joint solids (Manifold lists): pins and holes in mm, and domain_pins and domain_holes in the
+    parameters of its box (joints with space 'domain')."""
+
+    pins: list
+    holes: list
+    domain_pins: list
+    domain_holes: list
+
+
 def _joint_solids(joints, index):
-    """(pins, holes, domain_pins, domain_holes) of this cell, from volpuzzle.joint."""
-    pins, holes, dpins, dholes = [], [], [], []
+    """The joint solids of cell `index`, from volpuzzle.joint's Joints -> _CellJoints."""
+    solids = _CellJoints([], [], [], [])
     if not joints:
-        return pins, holes, dpins, dholes
+        return solids
     from .. import joint as joint_mod  # a later stage's helpers; imported only when there are joints
 
     for j in joints:
-        style = getattr(j, "style", "pin")
-        if style == "none":
+        if j.style == "none":
             continue
-        domain = getattr(j, "space", "physical") == "domain"
+        domain = j.space == "domain"
         pin_cell, hole_cell = tuple(j.pin_cell), tuple(j.hole_cell)
-        if style == "pin" and pin_cell == index:
+        if j.style == "pin" and pin_cell == index:
             if domain:
-                dpins.append(joint_mod.pin_solid_domain(j))
+                solids.domain_pins.append(joint_mod.pin_solid_domain(j))
             else:
-                pins.append(joint_mod.pin_solid(j))
-        if hole_cell == index or (style == "dowel" and pin_cell == index):
+                solids.pins.append(joint_mod.pin_solid(j))
+        if hole_cell == index or (j.style == "dowel" and pin_cell == index):
             if domain:
-                dholes.append(joint_mod.hole_solid_domain(j, index))
+                solids.domain_holes.append(joint_mod.hole_solid_domain(j, index))
             else:
-                holes.append(joint_mod.hole_solid(j, index))
-    return pins, holes, dpins, dholes
+                solids.holes.append(joint_mod.hole_solid(j, index))
+    return solids
 
 
 def _apply(body, pins, holes, what):
+    """body (Manifold) with the pins united and the holes subtracted."""
     for k, p in enumerate(pins):
         body = geometry.boolean(body, p, "union", f"{what} (pin {k + 1})")
     for k, h in enumerate(holes):
@@ -48,7 +60,7 @@ def _wrap(uvw, sampling):
     uvw = np.array(uvw, dtype=float, copy=True)
     lo, hi = sampling.domain
     for a, swap, flip in sampling.seams:
-        b, c = _others(a)
+        b, c = other_axes(a)
         span = hi[a] - lo[a]
         for sign in (1, -1):
             out = uvw[:, a] > hi[a] if sign > 0 else uvw[:, a] < lo[a]
@@ -68,12 +80,14 @@ def _wrap(uvw, sampling):
     return uvw
 
 
-def _on_face_positions(q, todo, face_bit, uvw, ids, tris, bits, xyz_all):
-    """Points q[todo] on one box face -> their positions on the face's tessellation (piecewise linear in its
-    parameters), so that a face cut by a domain pin or hole still lies exactly on the cut surface the neighbour sees."""
+def _on_face_positions(q, todo, face_bit, box, xyz_all):
+    """Points q[todo] on one face of the cell's ParameterMesh `box` -> their positions on the face's tessellation
+    (piecewise linear in its parameters), so that a face cut by a domain pin or hole still lies exactly on the cut
+    surface the neighbour sees. xyz_all: sampling.xyz."""
+    uvw, ids, tris = box.uvw, box.ids, box.faces
     a = face_bit // 2
-    b, c = _others(a)
-    on = (bits & (1 << face_bit)) != 0
+    b, c = other_axes(a)
+    on = (box.face_bits & (1 << face_bit)) != 0
     ft = tris[np.all(on[tris], axis=1)]
     p = q[todo][:, [b, c]]
     t0, t1, t2 = (uvw[ft[:, k]][:, [b, c]] for k in range(3))
@@ -94,12 +108,12 @@ def _on_face_positions(q, todo, face_bit, uvw, ids, tris, bits, xyz_all):
     return out
 
 
-def _domain_body(cell, sampling, fmap, dpins, dholes, what):
+def _domain_body(cell, sampling, fmap, domain_pins, domain_holes, what):
     """Booleans in parameter space on the cell's own tessellated box, then the vertices mapped through F with the
     new triangles off the box faces split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
-    uvw, ids, tris, bits = cell_parameter_mesh(cell, sampling)
-    body = geometry.manifold_from_mesh(uvw, tris, f"{what} (parameter box)")
-    body = _apply(body, dpins, dholes, f"{what} (in the domain)")
+    box_mesh = cell_parameter_mesh(cell, sampling)
+    body = geometry.manifold_from_mesh(box_mesh.uvw, box_mesh.faces, f"{what} (parameter box)")
+    body = _apply(body, domain_pins, domain_holes, f"{what} (in the domain)")
     out = geometry.to_trimesh(body)
     q = np.asarray(out.vertices, dtype=float)
     f = np.asarray(out.faces, dtype=np.int64)
@@ -111,7 +125,7 @@ def _domain_body(cell, sampling, fmap, dpins, dholes, what):
         mask[np.abs(q[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
     xyz = np.full(q.shape, np.nan)
     # the box's own points keep their exact parameters through the engine, and take the shared positions
-    where = {p.tobytes(): i for p, i in zip(uvw, ids, strict=True)}
+    where = {p.tobytes(): i for p, i in zip(box_mesh.uvw, box_mesh.ids, strict=True)}
     for r in np.flatnonzero(mask):
         i = where.get(q[r].tobytes())
         if i is not None:
@@ -119,7 +133,7 @@ def _domain_body(cell, sampling, fmap, dpins, dholes, what):
     for bit in range(6):
         todo = ((mask & (1 << bit)) != 0) & np.isnan(xyz[:, 0])
         if np.any(todo):
-            xyz[todo] = _on_face_positions(q, todo, bit, uvw, ids, tris, bits, sampling.xyz)
+            xyz[todo] = _on_face_positions(q, todo, bit, box_mesh, sampling.xyz)
     off = np.isnan(xyz[:, 0])
     if np.any(off):
         xyz[off] = fmap.evaluate(_wrap(q[off], sampling))

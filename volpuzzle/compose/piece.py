@@ -22,20 +22,20 @@ class Piece:
     triangles: int
 
 
-def build_piece(cell, sampling, fmap, joints, what=None, face_clearance=0.0):
+def build_piece(cell, sampling, fmap, joints, face_clearance=0.0):
     """One cell -> Piece: its body through F, cut faces set back by face_clearance / 2, pins united and holes
     subtracted (in mm, or in the domain for joints with space 'domain'); checked to be one closed solid with outward
-    normals. (grid: unused, kept for callers of the earlier signature.)"""
-    what = what or cell.id
+    normals."""
+    what = cell.id
     index = tuple(cell.index)
     verts, faces = cell_surface(cell, sampling, fmap, face_clearance=face_clearance)
     body = geometry.manifold_from_mesh(verts, faces, what)
     body_volume = float(body.volume())
-    pins, holes, dpins, dholes = _joint_solids(joints, index)
-    if dpins or dholes:
-        v2, f2 = _domain_body(cell, sampling, fmap, dpins, dholes, what)
-        body = geometry.manifold_from_mesh(v2, f2, f"{what} (mapped from the domain)")
-    body = _apply(body, pins, holes, what)
+    solids = _joint_solids(joints, index)
+    if solids.domain_pins or solids.domain_holes:
+        mapped_xyz, mapped_faces = _domain_body(cell, sampling, fmap, solids.domain_pins, solids.domain_holes, what)
+        body = geometry.manifold_from_mesh(mapped_xyz, mapped_faces, f"{what} (mapped from the domain)")
+    body = _apply(body, solids.pins, solids.holes, what)
     parts = body.decompose()
     if len(parts) != 1:
         raise GeometryError(f"{what}: the piece falls apart into {len(parts)} bodies after its joints "

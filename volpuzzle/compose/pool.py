@@ -5,6 +5,8 @@ import concurrent.futures
 import multiprocessing
 import os
 import time
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -23,38 +25,66 @@ _SECONDS_PER_TRIANGLE = 1e-5  # building, checking and converting one piece tria
 _SECONDS_PER_JOINT = 0.005  # the booleans of one pin and its hole
 
 
-_WORKER = {}
+@dataclass(frozen=True, eq=False)
+class BuildJob:
+    """What every piece is built from: the Tiling, the Sampling of its faces, the Map F, the Joint list and the face
+    clearance in mm. Pickled once into each worker (its initializer's argument)."""
+
+    tiling: object
+    sampling: object
+    fmap: object
+    joints: list
+    face_clearance: float
 
 
-def _init_worker(tiling, sampling, fmap, joints, face_clearance=0.0):
-    _WORKER.update(tiling=tiling, sampling=sampling, fmap=fmap, joints=joints, face_clearance=face_clearance)
+class _PieceRecord(NamedTuple):
+    """A built piece as plain data (which travels between processes more cheaply and predictably than a trimesh
+    object): id, cell index, vertices (n, 3) mm, faces (m, 3), volume and body_volume mm^3, build seconds."""
+
+    id: str
+    cell: tuple
+    vertices: np.ndarray
+    faces: np.ndarray
+    volume: float
+    body_volume: float
+    seconds: float
+
+
+_WORKER_JOB = None  # the BuildJob of this worker process, set by _init_worker
+
+
+def _init_worker(job):
+    global _WORKER_JOB
+    _WORKER_JOB = job
 
 
 def _warm_worker():
     """Load what every piece needs (the compiled kernels, from numba's cache) before the worker is given pieces,
     so that its first piece does not hold up the end of compose. -> the worker's pid"""
-    cell = next(iter(_WORKER["tiling"].cells.values()))
-    _WORKER["fmap"].evaluate(np.repeat(np.asarray(cell.center, float)[None], 512, axis=0))
+    cell = next(iter(_WORKER_JOB.tiling.cells.values()))
+    _WORKER_JOB.fmap.evaluate(np.repeat(np.asarray(cell.center, float)[None], 512, axis=0))
     return os.getpid()
 
 
-def _build_in_worker(index):
-    w = _WORKER
+def build_record(job, index):
+    """Cell `index` of the job -> _PieceRecord."""
     t0 = time.perf_counter()
-    p = build_piece(w["tiling"].cell(index), w["sampling"], w["fmap"], w["joints"],
-                    face_clearance=w.get("face_clearance", 0.0))
-    # plain arrays travel between processes more cheaply and predictably than trimesh objects
-    return (p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume, p.body_volume,
-            time.perf_counter() - t0)
+    p = build_piece(job.tiling.cell(index), job.sampling, job.fmap, job.joints, face_clearance=job.face_clearance)
+    return _PieceRecord(p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume,
+                        p.body_volume, time.perf_counter() - t0)
 
 
-def _piece_from(rec):
-    pid, cell, v, f, vol, bvol, _ = rec
-    mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
-    return Piece(pid, tuple(cell), mesh, vol, bvol, int(len(f)))
+def _build_in_worker(index):
+    return build_record(_WORKER_JOB, index)
 
 
-def _use_pool(jobs, n, sampling, joints):
+def piece_from(record):
+    """_PieceRecord -> Piece."""
+    mesh = trimesh.Trimesh(vertices=record.vertices, faces=record.faces, process=False)
+    return Piece(record.id, tuple(record.cell), mesh, record.volume, record.body_volume, int(len(record.faces)))
+
+
+def use_pool(jobs, n, sampling, joints):
     """A pool only pays when there is enough work: many pieces, and many triangles or booleans to share out."""
     if jobs is None or jobs <= 1 or n <= 1 or n < _POOL_MIN_PIECES:
         return False
@@ -62,28 +92,27 @@ def _use_pool(jobs, n, sampling, joints):
     return seconds >= _POOL_MIN_SECONDS
 
 
-def _pooled(order, jobs, tiling, sampling, fmap, joints, progress, face_clearance=0.0):
-    """Pieces built by this process and jobs - 1 spawned workers together -> {cell index: record}. This process
+def build_pooled(order, jobs, job, progress):
+    """Pieces built by this process and jobs - 1 spawned workers together -> {cell index: _PieceRecord}. This process
     takes pieces from the front while the workers start (~2.5 s of imports that it would otherwise wait for) and
     then take pieces from the back, two queued each; a piece still queued when the front reaches it is built
     here. Every piece is built by the same function, so where it is built does not change it."""
-    recs, n = {}, len(order)
+    records, n = {}, len(order)
     pending = list(order)
     running = {}
 
     def finished(fut, index):
         try:
-            recs[index] = fut.result()
+            records[index] = fut.result()
         except concurrent.futures.process.BrokenProcessPool as e:
-            raise GeometryError(f"compose: a worker process died while building {tiling.cell(index).id} ({e}); "
+            raise GeometryError(f"compose: a worker process died while building {job.tiling.cell(index).id} ({e}); "
                                 f"try --jobs 1") from e
         if progress:
-            progress(len(recs), n, recs[index][0])
+            progress(len(records), n, records[index].id)
 
     ctx = multiprocessing.get_context("spawn")
-    _init_worker(tiling, sampling, fmap, joints, face_clearance)
     pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1, mp_context=ctx, initializer=_init_worker,
-                                                  initargs=(tiling, sampling, fmap, joints, face_clearance))
+                                                  initargs=(job,))
     # Pieces go to the workers only once one has started: queued behind a worker's start-up they could keep this
     # process waiting at the end for as long as the start-up takes (10 s on a busy machine).
     started = pool.submit(_warm_worker)
@@ -100,9 +129,9 @@ def _pooled(order, jobs, tiling, sampling, fmap, joints, progress, face_clearanc
             if _MAIN_TAKES_PIECES:
                 if pending:
                     index = pending.pop(0)
-                    recs[index] = _build_in_worker(index)
+                    records[index] = build_record(job, index)
                     if progress:
-                        progress(len(recs), n, recs[index][0])
+                        progress(len(records), n, records[index].id)
                     continue
                 # nothing left here: take back what no worker has started
                 pending += [running.pop(f) for f in [f for f in running if f.cancel()]]
@@ -115,7 +144,6 @@ def _pooled(order, jobs, tiling, sampling, fmap, joints, progress, face_clearanc
                                     f"try --jobs 1")
             concurrent.futures.wait(list(running) or [started], return_when=concurrent.futures.FIRST_COMPLETED)
     finally:
-        _WORKER.clear()
         # without waiting for workers still starting: they exit when they find the pool shut
         pool.shutdown(wait=False, cancel_futures=True)
-    return recs
+    return records

@@ -1,6 +1,6 @@
 """The compose stage: every cell of the tiling -> Piece, serially or on the process pool when it pays."""
 
-from .pool import _WORKER, _build_in_worker, _init_worker, _piece_from, _pooled, _use_pool
+from .pool import BuildJob, build_pooled, build_record, piece_from, use_pool
 from .sampling import sample_parameters
 
 
@@ -20,20 +20,16 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
     sampling = sampling if sampling is not None else sample_parameters(tiling, fmap, tolerance)
     order = sorted(tiling.cells)
     n = len(order)
-    joints = list(joints or [])
-    recs = {}
-    if not _use_pool(jobs, n, sampling, joints):
-        _init_worker(tiling, sampling, fmap, joints, face_clearance)
-        try:
-            for k, index in enumerate(order):
-                recs[index] = _build_in_worker(index)
-                if progress:
-                    progress(k + 1, n, recs[index][0])
-        finally:
-            _WORKER.clear()
+    job = BuildJob(tiling, sampling, fmap, list(joints or []), face_clearance)
+    if use_pool(jobs, n, sampling, job.joints):
+        records = build_pooled(order, int(jobs), job, progress)
     else:
-        recs = _pooled(order, int(jobs), tiling, sampling, fmap, joints, progress, face_clearance)
-    out = Pieces(_piece_from(recs[index]) for index in order)
+        records = {}
+        for k, index in enumerate(order):
+            records[index] = build_record(job, index)
+            if progress:
+                progress(k + 1, n, records[index].id)
+    out = Pieces(piece_from(records[index]) for index in order)
     out.sampling = sampling
-    out.seconds = {recs[index][0]: recs[index][6] for index in order}
+    out.seconds = {records[index].id: records[index].seconds for index in order}
     return out

@@ -1,38 +1,39 @@
 """A cell's closed surface in mm from the shared face tessellation, its boundary in its own parameters, and the
 face clearance: cut faces set back by half of it on each side."""
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .. import geometry
-from .lattice import _others, _seen_through
+from ..grid import other_axes
+from .lattice import seen_through
 from .sampling import _WELD_MM
 
 _FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
 
 
-def _cell_ids(cell, sampling, lat=None):
-    """Triangles of the cell's boundary as global vertex ids (t, 3), oriented outward in parameter space."""
-    lat = lat or sampling.lattice
-    out = []
-    for key, reverse, _, _ in lat.cell_faces(tuple(cell.index)):
-        fm = sampling.faces[key]
-        t = fm.ids[fm.tris]
-        out.append(t[:, [0, 2, 1]] if reverse else t)
-    return np.concatenate(out)
+class ParameterMesh(NamedTuple):
+    """A cell box's boundary in its own parameters: uvw (n, 3); ids (n,) global vertex ids (xyz = sampling.xyz[ids]);
+    faces (m, 3) rows of uvw, outward in parameter space; face_bits (n,) int: bit 2a + side set for a point on the
+    min (side 0) or max (side 1) face along a."""
+
+    uvw: np.ndarray
+    ids: np.ndarray
+    faces: np.ndarray
+    face_bits: np.ndarray
 
 
 def cell_parameter_mesh(cell, sampling):
-    """The cell box's boundary in its own parameters, as the faces' tessellation places it: uvw (n, 3), ids (n,)
-    (global vertex ids: xyz = sampling.xyz[ids]), faces (m, 3) rows of uvw, outward in parameter space, and
-    face_of (n,) int: bit 2a + side set for a point on the min (side 0) or max (side 1) face along a."""
-    lat = sampling.lattice
+    """The cell box's boundary in its own parameters, as the faces' tessellation places it -> ParameterMesh."""
     box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
-    uvw, ids, tris, bits = [], [], [], []
+    uvw, ids, tris = [], [], []
     n = 0
-    for key, reverse, seam, (a, _) in lat.cell_faces(tuple(cell.index)):
-        fm = sampling.faces[key]
-        b, c = _others(a)
-        st = _seen_through(np.asarray(fm.st), seam)
+    for face in sampling.lattice.cell_faces(tuple(cell.index)):
+        a, reverse = face.axis, face.reverse
+        fm = sampling.faces[face.key]
+        b, c = other_axes(a)
+        st = seen_through(np.asarray(fm.st), face.seam)
         q = np.empty((len(st), 3))
         q[:, a] = box[0 if reverse else 1, a]
         q[:, b] = box[0, b] + st[:, 0] * (box[1, b] - box[0, b])
@@ -62,14 +63,14 @@ def cell_parameter_mesh(cell, sampling):
     for a in range(3):
         bits[np.abs(uvw[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
         bits[np.abs(uvw[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
-    return uvw, ids, tris, bits
+    return ParameterMesh(uvw, ids, tris, bits)
 
 
-def _is_cut_face(own, sampling):
-    """A cell face (a, g) is a cut face, shared with a neighbour, when it is inside the grid or on a periodic seam."""
-    a, g = own
-    n = len(sampling.breaks[a]) - 1
-    return 0 < g[a] < n or any(s[0] == a for s in sampling.seams)
+def _is_cut_face(axis, corner, sampling):
+    """The grid face across `axis` at grid vertex `corner` is a cut face, shared with a neighbour, when it is inside
+    the grid or on a periodic seam."""
+    n = len(sampling.breaks[axis]) - 1
+    return 0 < corner[axis] < n or any(s.axis == axis for s in sampling.seams)
 
 
 def _setback(xyz, faces, slot, cut, half):
@@ -153,16 +154,15 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     """Closed, outward triangulated boundary of the cell in mm: (vertices (n, 3), faces (m, 3) int). With
     face_clearance > 0 the cut faces are set back by half of it (the neighbour sets its side back by the other
     half), the outer faces stay exact."""
-    lat = sampling.lattice
-    keys, slots, cut = [], [], np.zeros(6, bool)
-    for k, (key, reverse, _, own) in enumerate(lat.cell_faces(tuple(cell.index))):
-        fm = sampling.faces[key]
+    tri_ids, slots, cut = [], [], np.zeros(6, bool)  # triangles as global vertex ids, their cell face, cut faces
+    for k, face in enumerate(sampling.lattice.cell_faces(tuple(cell.index))):
+        fm = sampling.faces[face.key]
         t = fm.ids[fm.tris]
-        keys.append(t[:, [0, 2, 1]] if reverse else t)
+        tri_ids.append(t[:, [0, 2, 1]] if face.reverse else t)
         slots.append(np.full(len(t), k))
-        cut[k] = _is_cut_face(own, sampling)
-    keys = np.concatenate(keys)
-    uniq, faces = np.unique(keys.ravel(), return_inverse=True)
+        cut[k] = _is_cut_face(face.axis, face.corner, sampling)
+    tri_ids = np.concatenate(tri_ids)
+    uniq, faces = np.unique(tri_ids.ravel(), return_inverse=True)
     faces = faces.reshape(-1, 3)
     if fmap.orientation < 0:
         faces = faces[:, [0, 2, 1]]
@@ -179,8 +179,7 @@ def face_clearance_volume(sampling, face_clearance):
         return 0.0
     area = 0.0
     for key, fm in sampling.faces.items():
-        a, g = key[0], key[1:]
-        if not _is_cut_face((a, g), sampling):
+        if not _is_cut_face(key.axis, key.corner, sampling):
             continue
         t = sampling.xyz[fm.ids[fm.tris]]
         area += float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())

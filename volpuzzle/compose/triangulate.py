@@ -2,12 +2,13 @@
 Delaunay triangulation of the boundary and a coarse seed, then longest-edge bisection of every triangle that misses F
 (all faces in one batch per round); a face that F squeezes onto a line is laddered between its rails instead."""
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial import Delaunay
 
 from ..errors import GeometryError
-from ..grid import AXES
-from .lattice import _others
+from ..grid import AXES, other_axes
 
 _MAX_FACE_POINTS = 100000  # per grid face, on average
 _ROUNDS = 60
@@ -43,18 +44,25 @@ def _deviation(d, corners):
     return out
 
 
+class _Chain(NamedTuple):
+    """One side of a face: st (k, 2) its samples in the face's rectangle, in increasing s or t; ids (k,) global."""
+
+    st: np.ndarray
+    ids: np.ndarray
+
+
 def _edge_ref(lat, axis, start, ts, ids):
     """The samples of the edge along axis from grid vertex start, in increasing local order: (t (k,), ids (k,))."""
-    key, rev = lat.edge(axis, start)
+    key, reverse = lat.edge(axis, start)
     t, i = ts[key], ids[key]
-    return (1.0 - t[::-1], i[::-1]) if rev else (t, i)
+    return (1.0 - t[::-1], i[::-1]) if reverse else (t, i)
 
 
 def _face_edges(key):
     """The four edges of a face in its own frame: bottom (t=0), right (s=1), top (t=1), left (s=0), as
     (axis, start) pairs; each runs in increasing s or t."""
-    a, g = key[0], list(key[1:])
-    b, c = _others(a)
+    g = list(key.corner)
+    b, c = other_axes(key.axis)
     gb, gc = list(g), list(g)
     gb[b] += 1
     gc[c] += 1
@@ -62,7 +70,7 @@ def _face_edges(key):
 
 
 def _chains(lat, key, ts, ids):
-    """-> four (st (k, 2), ids (k,)) chains, each in increasing s or t: bottom, right, top, left."""
+    """-> the four _Chains of face `key`: bottom, right, top, left."""
     out = []
     for k, (axis, start) in enumerate(_face_edges(key)):
         t, i = _edge_ref(lat, axis, start, ts, ids)
@@ -71,7 +79,7 @@ def _chains(lat, key, ts, ids):
             st[:, 0], st[:, 1] = t, 0.0 if k == 0 else 1.0
         else:
             st[:, 0], st[:, 1] = 1.0 if k == 1 else 0.0, t
-        out.append((st, i))
+        out.append(_Chain(st, i))
     return out
 
 
@@ -85,7 +93,7 @@ def _polygon(chains):
 
 def _chain_local(chains):
     """Positions in _polygon's order of the four chains' points (each in increasing s or t)."""
-    lens = [len(c[1]) for c in chains]
+    lens = [len(c.ids) for c in chains]
     total = sum(lens) - 4
     o_r = lens[0] - 1
     o_u = o_r + lens[1] - 1
@@ -129,13 +137,14 @@ def _ccw(p, tris):
 
 
 class _FaceWork:
-    """One canonical face under refinement: points st (k, 2) in its rectangle, their xyz, the first nb on the
-    boundary (counter-clockwise), scaled by the face's lengths in mm for well-shaped triangles."""
+    """One canonical face under refinement: points st (k, 2) in its rectangle, their xyz, the first n_boundary on
+    the boundary (counter-clockwise) with global ids boundary_ids; scale: the face's lengths in mm, which the
+    triangulation is made in for well-shaped triangles; tris (m, 3) rows of st once triangulated."""
 
     def __init__(self, key, st_b, ids_b, xyz_b, scale, seed):
         self.key = key
-        self.nb = len(st_b)
-        self.ids_b = ids_b
+        self.n_boundary = len(st_b)
+        self.boundary_ids = ids_b
         self.st = np.concatenate([st_b, seed])
         self.xyz = np.concatenate([xyz_b, np.full((len(seed), 3), np.nan)])
         self.scale = np.asarray(scale, dtype=float)
@@ -144,7 +153,7 @@ class _FaceWork:
         self.rng = np.random.default_rng([int(x) for x in key])
 
     def triangulate(self):
-        nb, n = self.nb, len(self.st)
+        nb, n = self.n_boundary, len(self.st)
         s, t = self.st[:, 0], self.st[:, 1]
         true = self.st * self.scale
         total = float(np.prod(self.scale))
@@ -165,7 +174,7 @@ class _FaceWork:
             if all(tuple(x) in have for x in bnd):
                 self.tris = tri
                 return tri
-        raise GeometryError(f"compose: could not triangulate the {AXES[self.key[0]]} face at grid {self.key[1:]} "
+        raise GeometryError(f"compose: could not triangulate the {AXES[self.key.axis]} face at grid {self.key.corner} "
                             f"with {n} points (internal error)")
 
 
@@ -205,70 +214,71 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
     off = np.concatenate([[0], np.cumsum(sizes)])
     st = np.concatenate([w.st for w in works])
     xyz = np.concatenate([w.xyz for w in works])
-    fid = np.repeat(np.arange(len(works)), sizes)
+    face_of = np.repeat(np.arange(len(works)), sizes)
     tris = np.concatenate([w.tris + off[k] for k, w in enumerate(works)])
-    big = np.int64(1) << 31
-    bkeys = []
+    key_base = np.int64(1) << 31
+    boundary_keys = []
     for k, w in enumerate(works):
-        i = np.arange(w.nb)
-        e = np.sort(np.stack([i, (i + 1) % w.nb], 1), axis=1) + off[k]
-        bkeys.append(e[:, 0] * big + e[:, 1])
-    bkeys = np.sort(np.concatenate(bkeys))
+        i = np.arange(w.n_boundary)
+        e = np.sort(np.stack([i, (i + 1) % w.n_boundary], 1), axis=1) + off[k]
+        boundary_keys.append(e[:, 0] * key_base + e[:, 1])
+    boundary_keys = np.sort(np.concatenate(boundary_keys))
     # per face: uvw = base + s ds + t dt
     base = np.zeros((len(works), 3))
     ds = np.zeros((len(works), 3))
     dt = np.zeros((len(works), 3))
     for k, w in enumerate(works):
-        a, g = w.key[0], w.key[1:]
-        b, c = _others(a)
+        g = w.key.corner
+        b, c = other_axes(w.key.axis)
         base[k] = [breaks[x][g[x]] for x in range(3)]
         ds[k, b] = breaks[b][g[b] + 1] - breaks[b][g[b]]
         dt[k, c] = breaks[c][g[c] + 1] - breaks[c][g[c]]
 
-    axes = np.array([_others(w.key[0]) for w in works])
+    axes = np.array([other_axes(w.key.axis) for w in works])
 
     def params(p, f):
         return base[f] + p[:, :1] * ds[f] + p[:, 1:] * dt[f]
 
     rng = np.random.default_rng(20250101)
     err = np.full(len(tris), np.nan)
-    # per triangle, computed once when it is made: its edges' keys, which of them are interior, and its longest one
-    keys = np.zeros((len(tris), 3), dtype=np.int64)
+    # per triangle, computed once when it is made: its edges' keys (lo * key_base + hi), which of them are interior,
+    # and its longest one
+    edge_keys = np.zeros((len(tris), 3), dtype=np.int64)
     interior = np.zeros((len(tris), 3), dtype=bool)
     longest = np.zeros(len(tris), dtype=np.int64)
     for _round in range(4 * _ROUNDS):
         todo = np.isnan(xyz[:, 0])
         if np.any(todo):
-            xyz[todo] = fmap.evaluate(params(st[todo], fid[todo]))
+            xyz[todo] = fmap.evaluate(params(st[todo], face_of[todo]))
         new = np.flatnonzero(np.isnan(err))
         if len(new):
-            tn = tris[new]
-            e = np.stack([tn[:, [0, 1]], tn[:, [1, 2]], tn[:, [2, 0]]], 1)  # (m, 3, 2)
-            k = np.minimum(e[..., 0], e[..., 1]) * big + np.maximum(e[..., 0], e[..., 1])
-            keys[new] = k
-            interior[new] = bkeys[np.clip(np.searchsorted(bkeys, k), 0, len(bkeys) - 1)] != k
+            new_tris = tris[new]
+            e = np.stack([new_tris[:, [0, 1]], new_tris[:, [1, 2]], new_tris[:, [2, 0]]], 1)  # (m, 3, 2)
+            k = np.minimum(e[..., 0], e[..., 1]) * key_base + np.maximum(e[..., 0], e[..., 1])
+            edge_keys[new] = k
+            interior[new] = boundary_keys[np.clip(np.searchsorted(boundary_keys, k), 0, len(boundary_keys) - 1)] != k
             length = np.linalg.norm(xyz[e[..., 0]] - xyz[e[..., 1]], axis=2)
             # ties by parameter length, then by position in the triangle: deterministic
             plen = np.linalg.norm(st[e[..., 0]] - st[e[..., 1]], axis=2)
             longest[new] = np.argmax(np.where(interior[new], length + 1e-9 * plen, -1.0), axis=1)
             m = len(new)
             lam = rng.dirichlet((1.0, 1.0, 1.0), size=2 * m).reshape(m, 2, 3)
-            w3 = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
+            weights = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
                                  np.broadcast_to(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), (m, 3, 3))],
                                 axis=1)  # (m, 6, 3): centroid, 2 random, 3 edge midpoints
-            pts = np.einsum("mkj,mjd->mkd", w3, st[tn]).reshape(-1, 2)
-            lin = np.einsum("mkj,mjd->mkd", w3, xyz[tn])
-            f_new = fid[tn[:, 0]]
-            got = fmap.evaluate(params(pts, np.repeat(f_new, 6))).reshape(m, 6, 3)
-            d = _deviation(got - lin, xyz[tn])
+            pts = np.einsum("mkj,mjd->mkd", weights, st[new_tris]).reshape(-1, 2)
+            lin = np.einsum("mkj,mjd->mkd", weights, xyz[new_tris])
+            new_face = face_of[new_tris[:, 0]]
+            got = fmap.evaluate(params(pts, np.repeat(new_face, 6))).reshape(m, 6, 3)
+            d = _deviation(got - lin, xyz[new_tris])
             d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
             err[new] = d.max(axis=1)
             # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
             # splitting mends it inside the face (next to a fixed boundary segment it would only make slivers)
-            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], f_new))
-            ax = axes[f_new]
+            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], new_face))
+            ax = axes[new_face]
             n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
-            c = xyz[tn]
+            c = xyz[new_tris]
             n_t = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
             norms = np.linalg.norm(n_s, axis=1) * np.linalg.norm(n_t, axis=1)
             scale = np.max(np.linalg.norm(c - c[:, :1], axis=2), axis=1)
@@ -284,23 +294,23 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
                 f"output.tolerance: {tolerance:g} mm needs more than {_MAX_FACE_POINTS} points per cell face "
                 f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
         rows = np.arange(len(tris))
-        split = np.unique(keys[rows[bad], longest[bad]])
+        split = np.unique(edge_keys[rows[bad], longest[bad]])
         while True:
-            has = _member(keys, split)
+            has = _member(edge_keys, split)
             need = np.any(has, axis=1) & ~has[rows, longest]
             if not np.any(need):
                 break
-            split = np.union1d(split, keys[rows[need], longest[need]])
+            split = np.union1d(split, edge_keys[rows[need], longest[need]])
         # new midpoints
-        lo, hi = split // big, split % big
+        lo, hi = split // key_base, split % key_base
         mid = len(st) + np.arange(len(split))
         st = np.concatenate([st, 0.5 * (st[lo] + st[hi])])
         xyz = np.concatenate([xyz, np.full((len(split), 3), np.nan)])
-        fid = np.concatenate([fid, fid[lo]])
+        face_of = np.concatenate([face_of, face_of[lo]])
         touched = np.any(has, axis=1)
         t = tris[touched]
         r = longest[touched]
-        k = keys[touched]
+        k = edge_keys[touched]
         h = has[touched]
         n = len(t)
         idx = np.arange(n)
@@ -314,22 +324,23 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         tris = np.concatenate([tris[~touched]] + out)
         made = sum(len(o) for o in out)
         err = np.concatenate([err[~touched], np.full(made, np.nan)])
-        keys = np.concatenate([keys[~touched], np.zeros((made, 3), dtype=np.int64)])
+        edge_keys = np.concatenate([edge_keys[~touched], np.zeros((made, 3), dtype=np.int64)])
         interior = np.concatenate([interior[~touched], np.zeros((made, 3), dtype=bool)])
         longest = np.concatenate([longest[~touched], np.zeros(made, dtype=np.int64)])
     else:
         raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * _ROUNDS} rounds")
     # back to the faces, in a fixed order
-    tf = fid[tris[:, 0]]
-    order = np.argsort(tf, kind="stable")
-    tris, tf = tris[order], tf[order]
-    tsplit = np.searchsorted(tf, np.arange(len(works) + 1))
-    pf_order = np.argsort(fid, kind="stable")
+    tri_face = face_of[tris[:, 0]]
+    order = np.argsort(tri_face, kind="stable")
+    tris, tri_face = tris[order], tri_face[order]
+    tri_split = np.searchsorted(tri_face, np.arange(len(works) + 1))
+    by_face = np.argsort(face_of, kind="stable")
     local = np.empty(len(st), dtype=np.int64)
-    psplit = np.searchsorted(fid[pf_order], np.arange(len(works) + 1))
+    point_split = np.searchsorted(face_of[by_face], np.arange(len(works) + 1))
     for k, w in enumerate(works):
-        pts = pf_order[psplit[k]:psplit[k + 1]]  # the face's points: its first ones, then its midpoints in order
+        # the face's points: its first ones, then its midpoints in order
+        pts = by_face[point_split[k]:point_split[k + 1]]
         local[pts] = np.arange(len(pts))
         w.st, w.xyz = st[pts], xyz[pts]
-        w.tris = local[tris[tsplit[k]:tsplit[k + 1]]]
+        w.tris = local[tris[tri_split[k]:tri_split[k + 1]]]
     return float(np.max(err, initial=0.0))

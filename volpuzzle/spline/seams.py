@@ -10,12 +10,9 @@ from itertools import product
 
 import numpy as np
 
+from ..grid import other_axes
+
 _UNIT = ((0.0, 1.0), (0.0, 1.0), (0.0, 1.0))
-
-
-def _others(axis):
-    b, c = (k for k in range(3) if k != axis)
-    return b, c
 
 
 @dataclass(frozen=True)
@@ -51,7 +48,7 @@ class Seam:
 
     def _apply(self, uvw, fn, to_max):
         uvw = np.asarray(uvw, dtype=float)
-        b, c = _others(self.axis)
+        b, c = other_axes(self.axis)
         lo = np.array([self.domain[b][0], self.domain[c][0]])
         hi = np.array([self.domain[b][1], self.domain[c][1]])
         st = (uvw[:, [b, c]] - lo) / (hi - lo)
@@ -97,7 +94,7 @@ def find_seams(vol, rel_tol=1e-6, samples=9):
     st = np.stack([ss.ravel(), tt.ravel()], axis=1)
     seams = {}
     for a in range(3):
-        b, c = _others(a)
+        b, c = other_axes(a)
         uvw = np.empty((len(st), 3))
         uvw[:, a] = dom[a][1]
         uvw[:, b] = dom[b][0] + st[:, 0] * (dom[b][1] - dom[b][0])
