@@ -55,7 +55,7 @@ def main():
     for want, label in ((False, "value-only"), (True, "value + partials")):
         c = time.process_time()
         fn = _fast.kernel(vol.degrees, want)
-        fn(uvw, 0, n, *vol._tables[0], *vol._tables[1], *vol._tables[2], *vol.degrees, vol._knet,
+        fn(uvw, 0, n, *vol._tables.as_args(), *vol.degrees, vol._knet,
            np.empty((n, vol._knet.shape[3])), np.empty((n, vol._knet.shape[3], 3)),
            np.empty(0) if vol._knet.shape[3] == 3 else np.empty((0, 0)))
         print(f"  serial kernel, CPU time, {label}: {n / (time.process_time() - c) / 1e6:.2f} M pts/s per core")

@@ -223,8 +223,8 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
         walk(s.moving)
 
     walk(cells)
-    fwj = tuple((n, "lower") for n in sorted(set(jointed)))
-    return AssemblyPlan(fwj, tuple(reversed(steps)), tuple(order))
+    faces_with_joints = tuple((n, "lower") for n in sorted(set(jointed)))
+    return AssemblyPlan(faces_with_joints, tuple(reversed(steps)), tuple(order))
 
 
 def joint_faces(tiling, plan):

@@ -18,10 +18,10 @@ from .spline import jacobian
 _DEFAULT_DEPTH = 6
 
 
-def _certify(vol, sign, max_depth, js=None):
-    """certify_positive / certify_negative, reusing an already computed JacobianSpline `js` when given."""
+def _certify(vol, sign, max_depth, det_spline=None):
+    """certify_positive / certify_negative, reusing an already computed JacobianSpline when given."""
     fn = jacobian.certify_positive if sign > 0 else jacobian.certify_negative
-    return fn(vol, max_depth=max_depth, js=js)
+    return fn(vol, max_depth=max_depth, det_spline=det_spline)
 
 
 def _absolute(cert):

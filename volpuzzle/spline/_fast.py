@@ -17,6 +17,8 @@ Parameters are clamped to the domain; NaN propagates (it fails every comparison,
 stays in range).
 """
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -26,9 +28,33 @@ MAXP = 8  # degree <= 7
 _FM = {"contract"}
 
 
+class AxisTables(NamedTuple):
+    """One axis's tables for the kernels (the kernels take them as four positional arrays, in this order): breaks
+    (E+1,) the Bezier elements' ends; inv_width (E,) 1 / their widths; first (E,) int64 the first control point
+    index of each element; extraction (E, p+1, p+1): basis function first+i on element e is
+    sum_m extraction[e, i, m] B_m."""
+
+    breaks: np.ndarray
+    inv_width: np.ndarray
+    first: np.ndarray
+    extraction: np.ndarray
+
+
+class KernelTables(NamedTuple):
+    """The three axes' AxisTables of a volume."""
+
+    u: AxisTables
+    v: AxisTables
+    w: AxisTables
+
+    def as_args(self):
+        """The kernels' table arguments: (bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, fw, xw) = breaks, inv_width,
+        first and extraction of u, then of v, then of w."""
+        return (*self.u, *self.v, *self.w)
+
+
 def axis_tables(knots, degree):
-    """Per-axis tables for the kernels: breaks (E+1,), 1/width (E,), first control index (E,) int64 and the
-    extraction matrices ext (E, p+1, p+1): basis function first+i on element e is sum_m ext[e, i, m] B_m."""
+    """Per-axis tables for the kernels -> AxisTables."""
     from .knots import bezier_extract_axis
     knots = np.asarray(knots, dtype=float)
     p = int(degree)
@@ -37,8 +63,8 @@ def axis_tables(knots, degree):
     seg = seg[..., 0]
     first = np.searchsorted(knots, br[:-1], side="right") - 1 - p
     ext = np.stack([seg[e][:, first[e]:first[e] + p + 1].T for e in range(len(br) - 1)])
-    return (np.ascontiguousarray(br), np.ascontiguousarray(1.0 / np.diff(br)), first.astype(np.int64),
-            np.ascontiguousarray(ext))
+    return AxisTables(np.ascontiguousarray(br), np.ascontiguousarray(1.0 / np.diff(br)), first.astype(np.int64),
+                      np.ascontiguousarray(ext))
 
 
 def padded_net(net, degrees):
@@ -548,6 +574,6 @@ def kernel_name(degrees, want_der):
 
 
 def kernel(degrees, want_der):
-    """The compiled entry for a volume of these degrees: fn(uvw, start, stop, *tables_u, *tables_v, *tables_w, pu, pv,
-    pw, cp, out, der, mode) fills out[start:stop] (and der[start:stop] for derivatives)."""
+    """The compiled entry for a volume of these degrees: fn(uvw, start, stop, *tables.as_args(), pu, pv, pw, cp, out,
+    der, mode), tables a KernelTables, fills out[start:stop] (and der[start:stop] for derivatives)."""
     return globals()[kernel_name(degrees, want_der)]

@@ -199,10 +199,10 @@ def jacobian_bezier(vol):
         upper = float(np.max(np.where(cmax >= 0, cmax / wmin4, cmax / wmax4)))
     else:
         lower, upper = lo, hi
-    js = JacobianSpline(tuple(np.asarray(b, dtype=float) for b in breaks), coef, lo, hi, np.zeros(3),
-                        vol.is_rational, lower, upper)
-    object.__setattr__(js, "argmin_uvw", js.greville(where[:3], where[3:]))
-    return js
+    det_spline = JacobianSpline(tuple(np.asarray(b, dtype=float) for b in breaks), coef, lo, hi, np.zeros(3),
+                                vol.is_rational, lower, upper)
+    object.__setattr__(det_spline, "argmin_uvw", det_spline.greville(where[:3], where[3:]))
+    return det_spline
 
 
 # --- certificates ---------------------------------------------------------------------------------------------
@@ -293,25 +293,25 @@ def _null_faces_interior(c, tol, on_boundary):
     return result
 
 
-def _certify(vol, js, sign, max_depth, eps):
-    scale = js.scale
+def _certify(vol, det_spline, sign, max_depth, eps):
+    scale = det_spline.scale
     if scale == 0.0:
-        return Certificate("disproved", sign, 0.0, np.asarray(js.argmin_uvw), 0.0, 0.0, 0,
+        return Certificate("disproved", sign, 0.0, np.asarray(det_spline.argmin_uvw), 0.0, 0.0, 0,
                            "det J vanishes identically")
     tol = eps * scale
-    E = js.coefficients.shape[:3]
-    degs = js.degrees
-    shape = js.coefficients.shape[3:]
-    coef = sign * js.coefficients.reshape((-1,) + shape)
+    E = det_spline.coefficients.shape[:3]
+    degs = det_spline.degrees
+    shape = det_spline.coefficients.shape[3:]
+    coef = sign * det_spline.coefficients.reshape((-1,) + shape)
     eu, ev, ew = np.meshgrid(*[np.arange(n) for n in E], indexing="ij")
     eidx = np.stack([eu.ravel(), ev.ravel(), ew.ravel()], axis=1)
-    boxes = np.stack([np.stack([js.breaks[a][eidx[:, a]] for a in range(3)], axis=1),
-                      np.stack([js.breaks[a][eidx[:, a] + 1] for a in range(3)], axis=1)], axis=1)  # (K, 2, 3)
-    dom = np.array([[b[0] for b in js.breaks], [b[-1] for b in js.breaks]])
+    boxes = np.stack([np.stack([det_spline.breaks[a][eidx[:, a]] for a in range(3)], axis=1),
+                      np.stack([det_spline.breaks[a][eidx[:, a] + 1] for a in range(3)], axis=1)], axis=1)  # (K, 2, 3)
+    dom = np.array([[b[0] for b in det_spline.breaks], [b[-1] for b in det_spline.breaks]])
     span = dom[1] - dom[0]
 
     best_min = np.inf          # smallest leaf coefficient among accepted leaves
-    best_where = np.asarray(js.argmin_uvw, dtype=float)
+    best_where = np.asarray(det_spline.argmin_uvw, dtype=float)
     degenerate = False
     unresolved = None          # (min coef, where) of the worst unresolved leaf
 
@@ -410,7 +410,7 @@ def _certify(vol, js, sign, max_depth, eps):
     return Certificate(status, sign, best_min / scale, best_where, _true_det(vol, best_where), scale, depth, msg)
 
 
-def certify_positive(vol, max_depth=6, eps=1e-10, js=None):
+def certify_positive(vol, max_depth=6, eps=1e-10, det_spline=None):
     """Certify det J > 0 on the whole domain -> Certificate.
 
     proved: every coefficient > eps*scale (scale = max |coefficient|), after subdividing (de Casteljau, halving the
@@ -422,14 +422,14 @@ def certify_positive(vol, max_depth=6, eps=1e-10, js=None):
     such as a sphere's pole or a square-to-disk patch's corners). A null face inside the domain is 'disproved'.
     unresolved: max_depth reached.
     """
-    js = jacobian_bezier(vol) if js is None else js
-    return _certify(vol, js, +1, max_depth, eps)
+    det_spline = jacobian_bezier(vol) if det_spline is None else det_spline
+    return _certify(vol, det_spline, +1, max_depth, eps)
 
 
-def certify_negative(vol, max_depth=6, eps=1e-10, js=None):
+def certify_negative(vol, max_depth=6, eps=1e-10, det_spline=None):
     """Certify det J < 0 on the whole domain (a left-handed model); see certify_positive."""
-    js = jacobian_bezier(vol) if js is None else js
-    return _certify(vol, js, -1, max_depth, eps)
+    det_spline = jacobian_bezier(vol) if det_spline is None else det_spline
+    return _certify(vol, det_spline, -1, max_depth, eps)
 
 
 @dataclass(frozen=True)
@@ -448,11 +448,11 @@ class Orientation:
 
 def orientation(vol, max_depth=6, eps=1e-10, samples=4096, seed=0):
     """Right- or left-handedness of `vol`, certified; 'folded' with a place when det J takes both signs."""
-    js = jacobian_bezier(vol)
-    tol = eps * js.scale
-    if js.min > tol:
+    det_spline = jacobian_bezier(vol)
+    tol = eps * det_spline.scale
+    if det_spline.min > tol:
         sign = 1
-    elif js.max < -tol:
+    elif det_spline.max < -tol:
         sign = -1
     else:
         rng = np.random.default_rng(seed)
@@ -464,11 +464,12 @@ def orientation(vol, max_depth=6, eps=1e-10, samples=4096, seed=0):
         if pos.any() and neg.any():
             minority = neg if neg.sum() <= pos.sum() else pos
             i = int(np.nonzero(minority)[0][np.argmax(np.abs(det[minority]))])
-            return Orientation("folded", 0, None, uvw[i], float(det[i]), js.lower, js.upper)
+            return Orientation("folded", 0, None, uvw[i], float(det[i]), det_spline.lower, det_spline.upper)
         sign = 1 if pos.sum() >= neg.sum() else -1
-    cert = _certify(vol, js, sign, max_depth, eps)
+    cert = _certify(vol, det_spline, sign, max_depth, eps)
     if cert.ok:
-        return Orientation("right" if sign > 0 else "left", sign, cert, cert.where_uvw, cert.value, js.lower, js.upper)
+        return Orientation("right" if sign > 0 else "left", sign, cert, cert.where_uvw, cert.value, det_spline.lower,
+                           det_spline.upper)
     if cert.status == "disproved":
-        return Orientation("folded", 0, cert, cert.where_uvw, cert.value, js.lower, js.upper)
-    return Orientation("unresolved", sign, cert, cert.where_uvw, cert.value, js.lower, js.upper)
+        return Orientation("folded", 0, cert, cert.where_uvw, cert.value, det_spline.lower, det_spline.upper)
+    return Orientation("unresolved", sign, cert, cert.where_uvw, cert.value, det_spline.lower, det_spline.upper)

@@ -203,7 +203,7 @@ class Volume:
     @cached_property
     def _tables(self):
         fast = _fast_module()
-        return tuple(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees, strict=True))
+        return fast.KernelTables(*(fast.axis_tables(k, p) for k, p in zip(self.knots, self.degrees, strict=True)))
 
     def _check_uvw(self, uvw):
         uvw = np.asarray(uvw, dtype=float)
@@ -227,8 +227,7 @@ class Volume:
         out = np.empty((n, d))
         der = np.empty((n, d, 3)) if want_der else np.empty((1, 1, 3))
         fn = fast.kernel(self.degrees, want_der)
-        tu, tv, tw = self._tables
-        args = (*tu, *tv, *tw, *(int(p) for p in self.degrees), self._knet, out, der, _MODE[d])
+        args = (*self._tables.as_args(), *(int(p) for p in self.degrees), self._knet, out, der, _MODE[d])
         pool = _threads() if n >= _PARALLEL_MIN else None
         if pool is None:
             fn(uvw, 0, n, *args)
