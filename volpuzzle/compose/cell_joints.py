@@ -8,7 +8,7 @@ import numpy as np
 from .. import geometry
 from ..grid import other_axes
 from .sampling import _SAFETY, _WELD_MM
-from .surface import cell_parameter_mesh
+from .surface import box_face_bits, cell_box, cell_parameter_mesh
 
 
 class _CellJoints(NamedTuple):
@@ -115,33 +115,28 @@ def _domain_body(cell, sampling, fmap, domain_pins, domain_holes, what):
     body = geometry.manifold_from_mesh(box_mesh.uvw, box_mesh.faces, f"{what} (parameter box)")
     body = _apply(body, domain_pins, domain_holes, f"{what} (in the domain)")
     out = geometry.to_trimesh(body)
-    q = np.asarray(out.vertices, dtype=float)
-    f = np.asarray(out.faces, dtype=np.int64)
-    box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
-    tol = 1e-10 * (box[1] - box[0])
-    mask = np.zeros(len(q), dtype=np.int64)
-    for a in range(3):
-        mask[np.abs(q[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
-        mask[np.abs(q[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
-    xyz = np.full(q.shape, np.nan)
+    uvw = np.asarray(out.vertices, dtype=float)
+    faces = np.asarray(out.faces, dtype=np.int64)
+    face_bits = box_face_bits(uvw, cell_box(cell, sampling), 1e-10)  # which box faces each vertex lies on
+    xyz = np.full(uvw.shape, np.nan)
     # the box's own points keep their exact parameters through the engine, and take the shared positions
     where = {p.tobytes(): i for p, i in zip(box_mesh.uvw, box_mesh.ids, strict=True)}
-    for r in np.flatnonzero(mask):
-        i = where.get(q[r].tobytes())
+    for r in np.flatnonzero(face_bits):
+        i = where.get(uvw[r].tobytes())
         if i is not None:
             xyz[r] = sampling.xyz[i]
     for bit in range(6):
-        todo = ((mask & (1 << bit)) != 0) & np.isnan(xyz[:, 0])
+        todo = ((face_bits & (1 << bit)) != 0) & np.isnan(xyz[:, 0])
         if np.any(todo):
-            xyz[todo] = _on_face_positions(q, todo, bit, box_mesh, sampling.xyz)
+            xyz[todo] = _on_face_positions(uvw, todo, bit, box_mesh, sampling.xyz)
     off = np.isnan(xyz[:, 0])
     if np.any(off):
-        xyz[off] = fmap.evaluate(_wrap(q[off], sampling))
-    q, xyz, f = _refine(q, xyz, f, mask, lambda x: fmap.evaluate(_wrap(x, sampling)),
-                        _SAFETY * sampling.tolerance)
+        xyz[off] = fmap.evaluate(_wrap(uvw[off], sampling))
+    uvw, xyz, faces = _refine(uvw, xyz, faces, face_bits, lambda x: fmap.evaluate(_wrap(x, sampling)),
+                              _SAFETY * sampling.tolerance)
     if fmap.orientation < 0:
-        f = f[:, [0, 2, 1]]
-    return geometry.weld(xyz, f, _WELD_MM)
+        faces = faces[:, [0, 2, 1]]
+    return geometry.weld(xyz, faces, _WELD_MM)
 
 
 def _refine(q, xyz, f, mask, evaluate, target):
@@ -149,9 +144,9 @@ def _refine(q, xyz, f, mask, evaluate, target):
     Edges with both ends on one box face (mask bits in common) lie in the flat, already fitted face and stay."""
     q, xyz, f, mask = np.array(q, dtype=float), np.array(xyz, dtype=float), f.copy(), np.array(mask)
     for _ in range(30):
-        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        e = np.unique(e, axis=0)
-        cand = e[(mask[e[:, 0]] & mask[e[:, 1]]) == 0]
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        edges = np.unique(edges, axis=0)
+        cand = edges[(mask[edges[:, 0]] & mask[edges[:, 1]]) == 0]  # the edges that may bend
         if len(cand) == 0:
             break
         mid = 0.5 * (q[cand[:, 0]] + q[cand[:, 1]])

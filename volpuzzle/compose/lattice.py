@@ -18,21 +18,9 @@ class PeriodicSeam(NamedTuple):
     flip: tuple
 
 
-class EdgeKey(NamedTuple):
-    """A grid edge: from grid vertex (i, j, k) to that vertex + e_axis."""
-
-    axis: int
-    i: int
-    j: int
-    k: int
-
-    @property
-    def corner(self):
-        return self[1:]
-
-
-class FaceKey(NamedTuple):
-    """A grid face: the rectangle at grid vertex (i, j, k) spanned by the two axes other than `axis`."""
+class GridKey(NamedTuple):
+    """A grid edge or face at grid vertex corner = (i, j, k): the edge runs from it to corner + e_axis; the face is
+    the rectangle there spanned by the two axes other than `axis`. Sorts and hashes as the plain tuple."""
 
     axis: int
     i: int
@@ -45,11 +33,11 @@ class FaceKey(NamedTuple):
 
 
 class CellFace(NamedTuple):
-    """One of a cell's six faces. key: the canonical FaceKey (whose triangles face +e_axis); reverse: the cell's
+    """One of a cell's six faces. key: the canonical face's GridKey (whose triangles face +e_axis); reverse: the cell's
     min face along the axis, whose outward side is the canonical face's back; seam: the PeriodicSeam the face was
     seen through (None inside the grid); axis and corner: the face as the cell itself places it."""
 
-    key: FaceKey
+    key: GridKey
     reverse: bool
     seam: PeriodicSeam | None
     axis: int
@@ -94,7 +82,7 @@ class Lattice:
         raise GeometryError("compose: grid vertices did not settle under the periodic seams")
 
     def edge(self, a, g):
-        """-> (canonical EdgeKey, reversed: the canonical edge runs the other way)."""
+        """-> (canonical edge's GridKey, reversed: the canonical edge runs the other way)."""
         p0, p1 = list(g), list(g)
         p1[a] += 1
         for _ in range(8):
@@ -110,10 +98,10 @@ class Lattice:
         axis = next(k for k in range(3) if p0[k] != p1[k])
         reverse = p0[axis] > p1[axis]
         start = p1 if reverse else p0
-        return EdgeKey(axis, *start), reverse
+        return GridKey(axis, *start), reverse
 
     def face(self, a, g):
-        """-> (canonical FaceKey, the PeriodicSeam the face was seen through, or None)."""
+        """-> (canonical face's GridKey, the PeriodicSeam the face was seen through, or None)."""
         for s in self.seams:
             if s.axis == a and g[a] == 0:
                 b, c = other_axes(a)
@@ -124,8 +112,8 @@ class Lattice:
                     p[c] += dc
                     corners.append(self._to_max(p, s))
                 lo = np.min(np.array(corners), axis=0)
-                return FaceKey(a, *(int(x) for x in lo)), s
-        return FaceKey(a, *(int(x) for x in g)), None
+                return GridKey(a, *(int(x) for x in lo)), s
+        return GridKey(a, *(int(x) for x in g)), None
 
     def cell_faces(self, index):
         """The six CellFaces of cell `index`, min then max side along u, v, w."""

@@ -45,7 +45,7 @@ class FaceMesh:
 class Sampling:
     """The global tessellation of every cell face. breaks: the tiling's three break arrays; seams: PeriodicSeam
     tuple; domain (2, 3); uvw (n, 3) parameters and xyz (n, 3) mm of every vertex (each evaluated once); faces:
-    {canonical FaceKey: FaceMesh}; max_error_mm: the largest deviation measured between F and its tessellation;
+    {canonical face GridKey: FaceMesh}; max_error_mm: the largest deviation measured between F and its tessellation;
     tolerance: the goal in mm."""
 
     breaks: tuple
@@ -134,7 +134,7 @@ def _off_chord(d, chord):
 
 def _sample_edges(keys, breaks, fmap, target, tolerance):
     """Bisect every edge's intervals (all edges in one batch per round) until F's chord error at the quarter
-    points and the midpoint is at most target. -> ({EdgeKey: sorted fractions (k,)}, {EdgeKey: xyz (k, 3), the
+    points and the midpoint is at most target. -> ({edge GridKey: sorted fractions (k,)}, {GridKey: xyz (k, 3), the
     last NaN: the end is a grid vertex}, the largest error measured on the final intervals)."""
     t_list, e_list = [], []
     for e, key in enumerate(keys):

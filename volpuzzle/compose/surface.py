@@ -24,9 +24,25 @@ class ParameterMesh(NamedTuple):
     face_bits: np.ndarray
 
 
+def cell_box(cell, sampling):
+    """The cell's parameter box (2, 3): its min and max corners, exactly the tiling's breaks."""
+    return np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
+
+
+def box_face_bits(uvw, box, rel_tol):
+    """(n,) int: bit 2a + side set for each point of uvw (n, 3) within rel_tol of the box's size on its min
+    (side 0) or max (side 1) face along a."""
+    tol = rel_tol * (box[1] - box[0])
+    bits = np.zeros(len(uvw), dtype=np.int64)
+    for a in range(3):
+        bits[np.abs(uvw[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
+        bits[np.abs(uvw[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
+    return bits
+
+
 def cell_parameter_mesh(cell, sampling):
     """The cell box's boundary in its own parameters, as the faces' tessellation places it -> ParameterMesh."""
-    box = np.array([[sampling.breaks[k][cell.index[k] + s] for k in range(3)] for s in (0, 1)])
+    box = cell_box(cell, sampling)
     uvw, ids, tris = [], [], []
     n = 0
     for face in sampling.lattice.cell_faces(tuple(cell.index)):
@@ -58,12 +74,7 @@ def cell_parameter_mesh(cell, sampling):
     _, first, inv = np.unique(np.column_stack([ids, place]), axis=0, return_index=True, return_inverse=True)
     inv = inv.ravel()
     uvw, ids, tris = uvw[first], ids[first], inv[tris]
-    tol = 1e-9 * span
-    bits = np.zeros(len(uvw), dtype=np.int64)
-    for a in range(3):
-        bits[np.abs(uvw[:, a] - box[0, a]) <= tol[a]] |= 1 << (2 * a)
-        bits[np.abs(uvw[:, a] - box[1, a]) <= tol[a]] |= 1 << (2 * a + 1)
-    return ParameterMesh(uvw, ids, tris, bits)
+    return ParameterMesh(uvw, ids, tris, box_face_bits(uvw, box, 1e-9))
 
 
 def _is_cut_face(axis, corner, sampling):

@@ -149,8 +149,6 @@ class _FaceWork:
         self.xyz = np.concatenate([xyz_b, np.full((len(seed), 3), np.nan)])
         self.scale = np.asarray(scale, dtype=float)
         self.tris = None
-        self.worst = 0.0
-        self.rng = np.random.default_rng([int(x) for x in key])
 
     def triangulate(self):
         nb, n = self.n_boundary, len(self.st)
