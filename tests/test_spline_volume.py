@@ -112,6 +112,26 @@ def test_compiled_kernels_match_numpy(degrees, counts, rational):
                                   vol.evaluate_with_derivatives(uvw[:1000])[1])
 
 
+def test_kernel_tables_say_what_they_hold():
+    # the named fields are what the kernels read: element ends, their inverse widths, each element's first control
+    # point, and extraction matrices whose rows are the non-zero basis functions; as_args is u's four, v's, w's
+    rng = np.random.default_rng(5)
+    vol = random_volume(rng, (2, 3, 1), (6, 7, 3), False)
+    tables = vol._tables
+    for axis, (knots, p, tab) in enumerate(zip(vol.knots, vol.degrees, tables, strict=True)):
+        np.testing.assert_array_equal(tab.breaks, np.unique(knots))
+        np.testing.assert_allclose(tab.inv_width, 1.0 / np.diff(tab.breaks))
+        assert tab.first.dtype == np.int64 and np.all(np.diff(tab.first) >= 0)
+        assert tab.first[0] == 0 and tab.first[-1] == vol.shape[axis] - p - 1
+        assert tab.extraction.shape == (len(tab.breaks) - 1, p + 1, p + 1)
+        # partition of unity: on every element the basis rows sum to the Bernstein polynomials' sum, 1
+        np.testing.assert_allclose(tab.extraction.sum(axis=1), 1.0, atol=1e-12)
+    args = tables.as_args()
+    assert len(args) == 12
+    assert all(a is b for a, b in zip(args, (*tables.u, *tables.v, *tables.w), strict=True))
+    assert args[0] is tables.u.breaks and args[7] is tables.v.extraction and args[10] is tables.w.first
+
+
 @pytest.mark.parametrize("rational", [False, True])
 def test_grid_matches_scattered(rational):
     rng = np.random.default_rng(5)
