@@ -7,11 +7,11 @@ import numpy as np
 
 from .. import geometry
 from ..grid import other_axes
-from .sampling import _SAFETY, _WELD_MM
+from .sampling import SAFETY, WELD_MM
 from .surface import box_face_bits, cell_box, cell_parameter_mesh
 
 
-class _CellJoints(NamedTuple):
+class CellJoints(NamedTuple):
     """A cell's joint solids (Manifold lists): pins and holes in mm, and domain_pins and domain_holes in the
     parameters of its box (joints with space 'domain')."""
 
@@ -21,9 +21,9 @@ class _CellJoints(NamedTuple):
     domain_holes: list
 
 
-def _joint_solids(joints, index):
-    """The joint solids of cell `index`, from volpuzzle.joint's Joints -> _CellJoints."""
-    solids = _CellJoints([], [], [], [])
+def joint_solids(joints, index):
+    """The joint solids of cell `index`, from volpuzzle.joint's Joints -> CellJoints."""
+    solids = CellJoints([], [], [], [])
     if not joints:
         return solids
     from .. import joint as joint_mod  # a later stage's helpers; imported only when there are joints
@@ -46,7 +46,7 @@ def _joint_solids(joints, index):
     return solids
 
 
-def _apply(body, pins, holes, what):
+def apply_joints(body, pins, holes, what):
     """body (Manifold) with the pins united and the holes subtracted."""
     for k, p in enumerate(pins):
         body = geometry.boolean(body, p, "union", f"{what} (pin {k + 1})")
@@ -108,12 +108,12 @@ def _on_face_positions(q, todo, face_bit, box, xyz_all):
     return out
 
 
-def _domain_body(cell, sampling, fmap, domain_pins, domain_holes, what):
+def domain_body(cell, sampling, fmap, domain_pins, domain_holes, what):
     """Booleans in parameter space on the cell's own tessellated box, then the vertices mapped through F with the
     new triangles off the box faces split until their edges meet the tolerance. -> (vertices, faces) in mm, outward."""
     box_mesh = cell_parameter_mesh(cell, sampling)
     body = geometry.manifold_from_mesh(box_mesh.uvw, box_mesh.faces, f"{what} (parameter box)")
-    body = _apply(body, domain_pins, domain_holes, f"{what} (in the domain)")
+    body = apply_joints(body, domain_pins, domain_holes, f"{what} (in the domain)")
     out = geometry.to_trimesh(body)
     uvw = np.asarray(out.vertices, dtype=float)
     faces = np.asarray(out.faces, dtype=np.int64)
@@ -133,10 +133,10 @@ def _domain_body(cell, sampling, fmap, domain_pins, domain_holes, what):
     if np.any(off):
         xyz[off] = fmap.evaluate(_wrap(uvw[off], sampling))
     uvw, xyz, faces = _refine(uvw, xyz, faces, face_bits, lambda x: fmap.evaluate(_wrap(x, sampling)),
-                              _SAFETY * sampling.tolerance)
+                              SAFETY * sampling.tolerance)
     if fmap.orientation < 0:
         faces = faces[:, [0, 2, 1]]
-    return geometry.weld(xyz, faces, _WELD_MM)
+    return geometry.weld(xyz, faces, WELD_MM)
 
 
 def _refine(q, xyz, f, mask, evaluate, target):

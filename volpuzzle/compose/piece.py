@@ -6,7 +6,7 @@ import trimesh
 
 from .. import geometry
 from ..errors import GeometryError
-from .cell_joints import _apply, _domain_body, _joint_solids
+from .cell_joints import apply_joints, domain_body, joint_solids
 from .surface import cell_surface
 
 
@@ -31,11 +31,11 @@ def build_piece(cell, sampling, fmap, joints, face_clearance=0.0):
     verts, faces = cell_surface(cell, sampling, fmap, face_clearance=face_clearance)
     body = geometry.manifold_from_mesh(verts, faces, what)
     body_volume = float(body.volume())
-    solids = _joint_solids(joints, index)
+    solids = joint_solids(joints, index)
     if solids.domain_pins or solids.domain_holes:
-        mapped_xyz, mapped_faces = _domain_body(cell, sampling, fmap, solids.domain_pins, solids.domain_holes, what)
+        mapped_xyz, mapped_faces = domain_body(cell, sampling, fmap, solids.domain_pins, solids.domain_holes, what)
         body = geometry.manifold_from_mesh(mapped_xyz, mapped_faces, f"{what} (mapped from the domain)")
-    body = _apply(body, solids.pins, solids.holes, what)
+    body = apply_joints(body, solids.pins, solids.holes, what)
     parts = body.decompose()
     if len(parts) != 1:
         raise GeometryError(f"{what}: the piece falls apart into {len(parts)} bodies after its joints "

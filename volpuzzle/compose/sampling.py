@@ -11,24 +11,24 @@ from ..errors import GeometryError
 from ..grid import AXES, other_axes
 from .lattice import Lattice, periodic_seams
 from .triangulate import (
-    _ROUNDS,
-    _ccw,
-    _chain_local,
-    _chains,
-    _face_edges,
-    _FaceWork,
-    _ladder,
-    _merge,
-    _polygon,
-    _refine_faces,
-    _seed,
+    ROUNDS,
+    FaceWork,
+    boundary_polygon,
+    ccw,
+    chain_positions,
+    face_chains,
+    face_edges,
+    ladder,
+    merge_sorted,
+    refine_faces,
+    seed_points,
 )
 
 # Measured points (edge midpoints and quarter points, triangle centroids) are held to this fraction of the
 # tolerance: for a smooth surface the linear interpolant's error inside a triangle can exceed its value there.
-_SAFETY = 0.8
+SAFETY = 0.8
 _MAX_EDGE_SAMPLES = 20000  # per grid edge; beyond this the tolerance is far below what a printer can show
-_WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
+WELD_MM = 1e-6  # points closer than this are one point (collapsed axes map whole faces onto lines or points)
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,7 +141,7 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
         a, g = key.axis, key.corner
         lo, hi = breaks[a][g[a]], breaks[a][g[a] + 1]
         kn = (_knot_values(fmap, a, lo, hi) - lo) / (hi - lo)
-        t, _ = _merge(np.array([0.0, 0.5, 1.0]), kn, 1e-7)  # a knot a hair off a break or the midpoint is that
+        t, _ = merge_sorted(np.array([0.0, 0.5, 1.0]), kn, 1e-7)  # a knot a hair off a break or the midpoint is that
         t_list.append(t)
         e_list.append(np.full(len(t), e))
     uvw = (np.concatenate([_edge_params(k, breaks, t) for k, t in zip(keys, t_list, strict=True)])
@@ -158,7 +158,7 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
     worst = 0.0
     counts = np.array([len(t) for t in t_list])
     quarters = np.array([0.25, 0.5, 0.75])
-    for _ in range(_ROUNDS):
+    for _ in range(ROUNDS):
         if len(edge) == 0:
             break
         q = t0[:, None] + (t1 - t0)[:, None] * quarters[None, :]  # (m, 3)
@@ -190,7 +190,7 @@ def _sample_edges(keys, breaks, fmap, target, tolerance):
         t0, t1 = np.concatenate([b_t0, tm]), np.concatenate([tm, b_t1])
         x0, x1 = np.concatenate([b_x0, xm]), np.concatenate([xm, b_x1])
     if len(edge):
-        raise GeometryError(f"output.tolerance: the cell edges did not reach {tolerance:g} mm in {_ROUNDS} rounds")
+        raise GeometryError(f"output.tolerance: the cell edges did not reach {tolerance:g} mm in {ROUNDS} rounds")
     de = np.concatenate(done_edge) if done_edge else np.empty(0, int)
     dt = np.concatenate(done_t) if done_t else np.empty(0)
     dx = np.concatenate(done_x) if done_x else np.empty((0, 3))
@@ -216,7 +216,7 @@ def _face_lengths(x5):
     dt = np.linalg.norm(np.diff(x5, axis=1), axis=2)  # (5, 4)
     spread_s = np.linalg.norm(x5 - x5[:1], axis=2).max()
     spread_t = np.linalg.norm(x5 - x5[:, :1], axis=2).max()
-    return _FaceSize(ds.sum(axis=0).mean(), dt.sum(axis=1).mean(), spread_s <= _WELD_MM, spread_t <= _WELD_MM)
+    return _FaceSize(ds.sum(axis=0).mean(), dt.sum(axis=1).mean(), spread_s <= WELD_MM, spread_t <= WELD_MM)
 
 
 def sample_parameters(tiling, fmap, tolerance):
@@ -225,7 +225,7 @@ def sample_parameters(tiling, fmap, tolerance):
     tolerance = float(tolerance)
     if not tolerance > 0:
         raise GeometryError(f"output.tolerance: must be > 0 mm (got {tolerance:g})")
-    target = _SAFETY * tolerance
+    target = SAFETY * tolerance
     seams = periodic_seams(tiling)
     breaks = tuple(np.asarray(b, dtype=float) for b in tiling.breaks)
     lat = Lattice([len(b) - 1 for b in breaks], seams)
@@ -234,7 +234,7 @@ def sample_parameters(tiling, fmap, tolerance):
     faces = sorted({lat.face(a, g)[0] for index in sorted(tiling.cells) for a, g in
                     ((a, tuple(index[k] + (side if k == a else 0) for k in range(3)))
                      for a in range(3) for side in (0, 1))})
-    edges = sorted({lat.edge(axis, start)[0] for key in faces for axis, start in _face_edges(key)})
+    edges = sorted({lat.edge(axis, start)[0] for key in faces for axis, start in face_edges(key)})
     verts = sorted({lat.vertex(g) for key in edges for g in (key.corner, _edge_end(key))})
     vid = {g: i for i, g in enumerate(verts)}
     v_uvw = np.array([[breaks[k][g[k]] for k in range(3)] for g in verts], dtype=float)
@@ -253,12 +253,12 @@ def sample_parameters(tiling, fmap, tolerance):
     for _ in range(64):
         changed = False
         for key in ladders:
-            bottom, right, top, left = _face_edges(key)
+            bottom, right, top, left = face_edges(key)
             rails = (left, right) if size[key].squeezed_s else (bottom, top)
             refs = [lat.edge(axis, start) for axis, start in rails]
             local = [1.0 - ts[k][::-1] if rev else ts[k] for k, rev in refs]
             for (k, rev), mine, other in ((refs[0], local[0], local[1]), (refs[1], local[1], local[0])):
-                merged, grew = _merge(mine, other, 1e-12)
+                merged, grew = merge_sorted(mine, other, 1e-12)
                 if grew:
                     ts[k] = 1.0 - merged[::-1] if rev else merged
                     changed_keys.add(k)
@@ -291,8 +291,8 @@ def sample_parameters(tiling, fmap, tolerance):
 
     triangulated, works = {}, {}
     for key in faces:
-        chains = _chains(lat, key, ts, e_ids)
-        st_b, ids_b = _polygon(chains)
+        chains = face_chains(lat, key, ts, e_ids)
+        st_b, ids_b = boundary_polygon(chains)
         face_size = size[key]
         if face_size.squeezed_s and face_size.squeezed_t:
             # a whole face on one point: a fan about its centre, which welding removes
@@ -300,9 +300,9 @@ def sample_parameters(tiling, fmap, tolerance):
             tris = np.array([(c, i, (i + 1) % c) for i in range(c)], dtype=np.int64)
             triangulated[key] = _FaceTriangles(np.concatenate([st_b, [[0.5, 0.5]]]), ids_b, tris)
         elif face_size.squeezed_s or face_size.squeezed_t:
-            bottom, right, top, left = _chain_local(chains)
+            bottom, right, top, left = chain_positions(chains)
             rails = (left, right, bottom, top) if face_size.squeezed_s else (bottom, top, left, right)
-            triangulated[key] = _FaceTriangles(st_b, ids_b, np.array(_ladder(*rails), dtype=np.int64))
+            triangulated[key] = _FaceTriangles(st_b, ids_b, np.array(ladder(*rails), dtype=np.int64))
         else:
             g = key.corner
             knots = []
@@ -311,9 +311,9 @@ def sample_parameters(tiling, fmap, tolerance):
                 knots.append((_knot_values(fmap, ax, lo, hi) - lo) / (hi - lo))
             ls, lt = face_size.length_s, face_size.length_t
             scale = np.maximum([ls, lt], 1e-9 * max(ls, lt, 1e-3))
-            works[key] = _FaceWork(key, st_b, ids_b, xyz_so_far[ids_b], scale, _seed(scale, *knots))
+            works[key] = FaceWork(key, st_b, ids_b, xyz_so_far[ids_b], scale, seed_points(scale, *knots))
 
-    worst_face = _refine_faces(list(works.values()), breaks, fmap, target, tolerance)
+    worst_face = refine_faces(list(works.values()), breaks, fmap, target, tolerance)
     for w in works.values():
         triangulated[w.key] = _FaceTriangles(w.st, w.boundary_ids, w.tris)
 
@@ -328,7 +328,7 @@ def sample_parameters(tiling, fmap, tolerance):
             uvw_parts.append(uvw_in)
             w = works.get(key)
             xyz_parts.append(w.xyz[len(ids_b):] if w is not None else fmap.evaluate(uvw_in))
-        tris, _ = _ccw(st, np.asarray(tris, dtype=np.int64))
+        tris, _ = ccw(st, np.asarray(tris, dtype=np.int64))
         if key.axis == 1:  # e_u x e_w = -e_v: counter-clockwise in (s, t) faces -v
             tris = tris[:, [0, 2, 1]]
         face_meshes[key] = FaceMesh(_ro(ids), _ro(st), _ro(tris))

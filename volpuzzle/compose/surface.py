@@ -8,7 +8,7 @@ import numpy as np
 from .. import geometry
 from ..grid import other_axes
 from .lattice import seen_through
-from .sampling import _WELD_MM
+from .sampling import WELD_MM
 
 _FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
 
@@ -87,7 +87,7 @@ def _is_cut_face(axis, corner, sampling):
 def _setback(xyz, faces, slot, cut, half):
     """Displacements (n, 3) that set every cut face back by `half` mm along its normal while the cell's outer faces
     stay where they are. xyz (n, 3), faces (m, 3) outward, slot (m,) the cell face (0..5) of each triangle, cut (6,)
-    bool. Per point (points closer than _WELD_MM count as one: collapsed faces repeat a point under several ids), the
+    bool. Per point (points closer than WELD_MM count as one: collapsed faces repeat a point under several ids), the
     displacement d is the smallest with d . n_f = -half on each cut face f it lies on and d . n_f = 0 on each outer
     face: a corner of two cut faces moves along both normals, a point where a cut face meets the outside slides
     along the outside. Points inside one face near its edge then follow the edge's slide along the face, fading out
@@ -98,7 +98,7 @@ def _setback(xyz, faces, slot, cut, half):
 
     nv = len(xyz)
     cluster = np.arange(nv)
-    pairs = cKDTree(xyz).query_pairs(_WELD_MM, output_type="ndarray")
+    pairs = cKDTree(xyz).query_pairs(WELD_MM, output_type="ndarray")
     if len(pairs):
         graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
         _, cluster = connected_components(graph, directed=False)
@@ -180,7 +180,7 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     xyz = sampling.xyz[uniq]
     if face_clearance > 0 and cut.any():
         xyz = xyz + _setback(xyz, faces, np.concatenate(slots), cut, 0.5 * face_clearance)
-    return geometry.weld(xyz, faces, _WELD_MM)
+    return geometry.weld(xyz, faces, WELD_MM)
 
 
 def face_clearance_volume(sampling, face_clearance):

@@ -11,11 +11,11 @@ from ..errors import GeometryError
 from ..grid import AXES, other_axes
 
 _MAX_FACE_POINTS = 100000  # per grid face, on average
-_ROUNDS = 60
+ROUNDS = 60
 _BULGE = (1e-3, 1e-5, 1e-7)  # how far face boundaries are bowed out so that Delaunay keeps them (fraction of size)
 
 
-def _merge(values, new, eps):
+def merge_sorted(values, new, eps):
     """Sorted union of values and new, skipping new values within eps of one already there."""
     values = np.asarray(values, dtype=float)
     new = np.asarray(new, dtype=float)
@@ -58,7 +58,7 @@ def _edge_ref(lat, axis, start, ts, ids):
     return (1.0 - t[::-1], i[::-1]) if reverse else (t, i)
 
 
-def _face_edges(key):
+def face_edges(key):
     """The four edges of a face in its own frame: bottom (t=0), right (s=1), top (t=1), left (s=0), as
     (axis, start) pairs; each runs in increasing s or t."""
     g = list(key.corner)
@@ -69,10 +69,10 @@ def _face_edges(key):
     return (b, g), (c, gb), (b, gc), (c, g)
 
 
-def _chains(lat, key, ts, ids):
+def face_chains(lat, key, ts, ids):
     """-> the four _Chains of face `key`: bottom, right, top, left."""
     out = []
-    for k, (axis, start) in enumerate(_face_edges(key)):
+    for k, (axis, start) in enumerate(face_edges(key)):
         t, i = _edge_ref(lat, axis, start, ts, ids)
         st = np.empty((len(t), 2))
         if k in (0, 2):
@@ -83,7 +83,7 @@ def _chains(lat, key, ts, ids):
     return out
 
 
-def _polygon(chains):
+def boundary_polygon(chains):
     """The four chains -> the face boundary counter-clockwise in (s, t): st (k, 2), ids (k,), each corner once."""
     (sb, ib), (sr, ir), (su, iu), (sl, il) = chains
     st = np.concatenate([sb[:-1], sr[:-1], su[::-1][:-1], sl[::-1][:-1]])
@@ -91,8 +91,8 @@ def _polygon(chains):
     return st, ids
 
 
-def _chain_local(chains):
-    """Positions in _polygon's order of the four chains' points (each in increasing s or t)."""
+def chain_positions(chains):
+    """Positions in boundary_polygon's order of the four chains' points (each in increasing s or t)."""
     lens = [len(c.ids) for c in chains]
     total = sum(lens) - 4
     o_r = lens[0] - 1
@@ -105,7 +105,7 @@ def _chain_local(chains):
     return bottom, right, top, left
 
 
-def _ladder(rail_l, rail_r, cap_lo, cap_hi):
+def ladder(rail_l, rail_r, cap_lo, cap_hi):
     """Triangles (as id triples) of a face that F squeezes across the rails' direction: rails l and r carry the same
     levels, and every triangle joins only neighbouring levels, so after welding each has a repeated vertex.
     cap_lo runs from l[0] to r[0], cap_hi from l[-1] to r[-1]."""
@@ -130,13 +130,13 @@ def _signed_area(p, tris):
     return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
 
 
-def _ccw(p, tris):
+def ccw(p, tris):
     area = _signed_area(p, tris)
     tris = np.where((area < 0)[:, None], tris[:, [0, 2, 1]], tris)
     return tris, np.abs(area)
 
 
-class _FaceWork:
+class FaceWork:
     """One canonical face under refinement: points st (k, 2) in its rectangle, their xyz, the first n_boundary on
     the boundary (counter-clockwise) with global ids boundary_ids; scale: the face's lengths in mm, which the
     triangulation is made in for well-shaped triangles; tris (m, 3) rows of st once triangulated."""
@@ -163,7 +163,7 @@ class _FaceWork:
                 tri = Delaunay(q * self.scale).simplices.astype(np.int64)
             except Exception:  # qhull refuses (e.g. too few distinct points): try a smaller bulge, then give up
                 continue
-            tri, area = _ccw(true, tri)
+            tri, area = ccw(true, tri)
             if len(np.unique(tri)) != n or np.min(area) <= 1e-12 * total or abs(area.sum() - total) > 1e-9 * total:
                 continue
             e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
@@ -176,14 +176,14 @@ class _FaceWork:
                             f"with {n} points (internal error)")
 
 
-def _seed(scale, knots_s, knots_t):
+def seed_points(scale, knots_s, knots_t):
     """A coarse interior grid (about 4 cells across the longer side) plus points on the interior knot lines."""
     h = max(scale) / 4.0
     ks, kt = (max(2, int(round(x / h))) for x in scale)
     s = np.arange(1, ks) / ks
     t = np.arange(1, kt) / kt
-    s_all, _ = _merge(np.concatenate([[0.0], s, [1.0]]), knots_s, 1e-9)
-    t_all, _ = _merge(np.concatenate([[0.0], t, [1.0]]), knots_t, 1e-9)
+    s_all, _ = merge_sorted(np.concatenate([[0.0], s, [1.0]]), knots_s, 1e-9)
+    t_all, _ = merge_sorted(np.concatenate([[0.0], t, [1.0]]), knots_t, 1e-9)
     pts = [np.stack(np.meshgrid(s, t_all, indexing="ij"), -1).reshape(-1, 2),
            np.stack(np.meshgrid(s_all, t, indexing="ij"), -1).reshape(-1, 2)]
     pts = np.unique(np.concatenate(pts), axis=0)
@@ -198,7 +198,7 @@ def _member(keys, sorted_keys):
     return sorted_keys[pos] == keys
 
 
-def _refine_faces(works, breaks, fmap, target, tolerance):
+def refine_faces(works, breaks, fmap, target, tolerance):
     """Refine every face from its initial Delaunay triangulation, all faces in one batch per round: triangles whose
     tessellation misses F (at the centroid, the interior edge midpoints and two random points) by more than target
     have their longest interior edge bisected, with the longest-edge closure of Rivara so that triangles stay well
@@ -244,7 +244,7 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
     edge_keys = np.zeros((len(tris), 3), dtype=np.int64)
     interior = np.zeros((len(tris), 3), dtype=bool)
     longest = np.zeros(len(tris), dtype=np.int64)
-    for _round in range(4 * _ROUNDS):
+    for _round in range(4 * ROUNDS):
         todo = np.isnan(xyz[:, 0])
         if np.any(todo):
             xyz[todo] = fmap.evaluate(params(st[todo], face_of[todo]))
@@ -326,7 +326,7 @@ def _refine_faces(works, breaks, fmap, target, tolerance):
         interior = np.concatenate([interior[~touched], np.zeros((made, 3), dtype=bool)])
         longest = np.concatenate([longest[~touched], np.zeros(made, dtype=np.int64)])
     else:
-        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * _ROUNDS} rounds")
+        raise GeometryError(f"output.tolerance: the cell faces did not reach {tolerance:g} mm in {4 * ROUNDS} rounds")
     # back to the faces, in a fixed order
     tri_face = face_of[tris[:, 0]]
     order = np.argsort(tri_face, kind="stable")
