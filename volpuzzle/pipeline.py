@@ -4,8 +4,7 @@ import math
 import os
 import sys
 import time
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,42 +12,7 @@ import numpy as np
 from . import __version__
 from .errors import GeometryError, SpecError
 from .grid import AXES
-
-
-class Progress:
-    """Stage and piece progress on a terminal; silent when stderr is not a terminal (CI, pipes)."""
-
-    def __init__(self, enabled=None):
-        if enabled is None:
-            enabled = sys.stderr.isatty() and not os.environ.get("VOLPUZZLE_NO_PROGRESS")
-        self.enabled = enabled
-
-    def stage(self, name):
-        if self.enabled:
-            print(f"\r\033[K{name} ...", end="", file=sys.stderr, flush=True)
-
-    def piece(self, i, n, piece_id):
-        if self.enabled:
-            print(f"\r\033[Kcompose {i}/{n} {piece_id}", end="", file=sys.stderr, flush=True)
-
-    def done(self):
-        if self.enabled:
-            print("\r\033[K", end="", file=sys.stderr, flush=True)
-
-
-@dataclass
-class Timer:
-    timings: dict = field(default_factory=dict)
-
-    @contextmanager
-    def __call__(self, name, progress=None):
-        if progress is not None:
-            progress.stage(name)
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings[name] = round(self.timings.get(name, 0.0) + time.perf_counter() - t0, 3)
+from .progress import Progress, Timer
 
 
 @dataclass(frozen=True, eq=False)
