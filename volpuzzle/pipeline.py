@@ -15,40 +15,6 @@ from .load import load_model_for
 from .progress import Progress, Timer
 
 
-def _seams_for(spec, vol):
-    from .spline.seams import find_seams
-
-    found = find_seams(vol)
-    return {a: s for a, s in found.items() if a in spec.periodic}, found
-
-
-def _check_grid_vs_tolerance(spec, tiling, fmap):
-    """A cell thinner than a few tolerances cannot be printed or joined; say which grid would fit."""
-    problems = []
-    tol = spec.output.tolerance
-    for a in range(3):
-        lengths = []
-        for cell in tiling.cells.values():
-            lo, hi = cell.box
-            mid = cell.center
-            p0, p1 = mid.copy(), mid.copy()
-            p0[a], p1[a] = lo[a], hi[a]
-            ts = np.linspace(0, 1, 9)[:, None]
-            pts = fmap.evaluate(p0 + ts * (p1 - p0))
-            lengths.append(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
-        smallest = min(lengths)
-        # Below about ten tolerances the chords of a piece are as coarse as the piece itself.
-        if smallest < 10 * tol:
-            fit = int(spec.grid[a] * smallest / (10 * tol))
-            advice = (f"at most {fit} along {AXES[a]} or output.tolerance at most {smallest / 10:.3g} mm" if fit >= 1
-                      else f"output.tolerance at most {smallest / 10:.3g} mm")
-            problems.append(
-                f"grid: {spec.grid[a]} pieces along {AXES[a]} make pieces {smallest:.3g} mm thin, too thin for "
-                f"output.tolerance {tol:g} mm (got {spec.grid[a]}, expected {advice})")
-    if problems:
-        raise SpecError(problems, source=spec.source)
-
-
 def prepare(spec, timer=None, progress=None):
     """Every stage up to joints, without meshes: what `validate` runs. -> dict of stage results."""
     from .limits import check_model_limits, check_spec_limits
@@ -63,7 +29,7 @@ def prepare(spec, timer=None, progress=None):
     from .mapping import Map
     from .randomize import family_from_spec
     from .spline.measure import volume as volume_of
-    from .tile import tile
+    from .tile import check_grid_vs_tolerance, seams_for, tile
     from .verify import verify_model, verify_warp
 
     vol = model.volume
@@ -74,7 +40,7 @@ def prepare(spec, timer=None, progress=None):
         spec = dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))
     with timer("verify", progress):
         model_check = verify_model(vol)
-    seams, all_seams = _seams_for(spec, vol)
+    seams, all_seams = seams_for(spec, vol)
     rand = spec.randomize
     warp, rand_report = None, {"seed": None, "amplitude": 0.0, "jacobian_min_coefficient": None, "bijective": True}
     if rand is not None and rand.amplitude > 0:
@@ -94,7 +60,7 @@ def prepare(spec, timer=None, progress=None):
             # through the warp too: the cells are cut from the randomized cage
             mass = mesh_mass(fmap, model.mesh)
         tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
-    _check_grid_vs_tolerance(spec, tiling, fmap)
+    check_grid_vs_tolerance(spec, tiling, fmap)
     plan, joints, contacts = None, [], None
     # In mesh mode the joints and their plan go on the contacts of the final pieces, known only after composing.
     if model.mesh is None:
