@@ -98,13 +98,6 @@ def prepare(spec, timer=None, progress=None):
             "contacts": contacts, "model_report": model_report, "randomize_report": rand_report}
 
 
-def joint_gap_volume(joint):
-    """mm^3 the joint leaves empty between its pieces (volpuzzle.joint.gap_volume)."""
-    from .joint import gap_volume
-
-    return gap_volume(joint)
-
-
 def _check_plate(spec, tiling, fmap):
     """Refuse a plate smaller than the largest piece before any mesh is built, naming the size needed."""
     import trimesh
@@ -142,7 +135,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces, check_printability
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
-    from .joint import piece_joints_report
+    from .joint import gap_volume, piece_joints_report
     from .spec import load_spec, spec_to_dict, with_overrides
 
     progress = progress if progress is not None else Progress()
@@ -194,14 +187,14 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
         pieces, joints, stages["plan"], mesh_report = compose_in_mesh(stages, spec.joints, tolerance, jobs, timer,
                                                                       progress)
-        gaps = sum(joint_gap_volume(j) for j in joints)
+        gaps = sum(gap_volume(j) for j in joints)
         face_gaps = 0.0
         expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
     else:
         from .compose import face_clearance_volume
 
-        gaps = sum(joint_gap_volume(j) for j in joints)
+        gaps = sum(gap_volume(j) for j in joints)
         for attempt in range(3):
             with timer("compose", progress):
                 pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs,
