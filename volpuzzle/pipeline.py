@@ -98,36 +98,6 @@ def prepare(spec, timer=None, progress=None):
             "contacts": contacts, "model_report": model_report, "randomize_report": rand_report}
 
 
-def _check_plate(spec, tiling, fmap):
-    """Refuse a plate smaller than the largest piece before any mesh is built, naming the size needed."""
-    import trimesh
-
-    plate = np.sort(np.asarray(spec.output.plate, float))[::-1]
-    t = np.linspace(0, 1, 5)
-    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
-    cells = list(tiling.cells.values())
-    pts = fmap.evaluate(np.concatenate([c.box[0] + grid * (c.box[1] - c.box[0]) for c in cells]))
-    pts = pts.reshape(len(cells), len(grid), 3)
-
-    def footprint(p, exact):
-        # a box along the principal axes that fits proves the piece fits; only a misfit needs trimesh's smallest box
-        # (about 10 ms a piece)
-        if exact:
-            ext = trimesh.bounds.oriented_bounds(p)[1]
-        else:
-            q = p - p.mean(axis=0)
-            ext = np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2].T, axis=0)
-        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing + 2 * spec.output.margin
-
-    if all(np.all(footprint(p, False) <= plate + 1e-9) for p in pts):
-        return
-    need = np.max([footprint(p, True) for p in pts], axis=0)
-    if np.any(need > plate + 1e-9):
-        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with "
-                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least "
-                        f"[{np.ceil(need[0]):.0f}, {np.ceil(need[1]):.0f}])", source=spec.source)
-
-
 def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=False, progress=None,
           allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
@@ -136,6 +106,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     from .compose import compose
     from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
     from .joint import gap_volume, piece_joints_report
+    from .layout import base_cuts, check_plate, plan_poses, plates_and_preview, print_entry
     from .spec import load_spec, spec_to_dict, with_overrides
 
     progress = progress if progress is not None else Progress()
@@ -143,7 +114,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
     timer = Timer()
     stages = prepare(spec, timer, progress)
-    _check_plate(spec, stages["tiling"], stages["fmap"])
+    check_plate(spec, stages["tiling"], stages["fmap"])
     jobs = jobs or os.cpu_count() or 1
     joints = stages["joints"]
     tolerance = spec.output.tolerance
@@ -155,10 +126,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the
         build's own checks on exactly that."""
         with timer("layout", progress):
-            poses = _poses(pieces, joints)
+            poses = plan_poses(pieces, joints)
         pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress, poses)
         with timer("layout", progress):
-            pieces, cut = _base_cuts(pieces, poses)
+            pieces, cut = base_cuts(pieces, poses)
         if spec.output.labels:
             with timer("label", progress):
                 pieces, more = _bed_labels(pieces, labels, poses)
@@ -233,7 +204,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     pins = pin_triangles(pieces, joints)
     texture, texture_report = _texture(spec, stages, pieces, tolerance, timer, progress)
     with timer("layout", progress):
-        placements, plates, extras = _layout(spec, pieces, dowels, joints, colors, pins, texture,
+        placements, plates, extras = plates_and_preview(spec, pieces, dowels, joints, colors, pins, texture,
                                              state["poses"], assembly.get("steps"))
     ext = spec.output.format
     place_of = {pl.name: pl for pl in placements}
@@ -243,7 +214,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         entry["plate"] = place_of[p.id].plate if p.id in place_of else None
         entry["label"] = labels.get(p.id)
         entry["joints"] = piece_joints_report(joints, p.cell)
-        entry["print"] = _print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
+        entry["print"] = print_entry(p, state["poses"].get(p.id), place_of.get(p.id))
         entries.append(entry)
     under = [e["id"] for e in entries if e["print"] and e["print"]["bed_contact_mm2"] < BED_MIN_MM2]
     if under:  # `volpuzzle check` would refuse the folder: so does the build, before writing it
@@ -319,14 +290,6 @@ def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False)
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
-def _poses(pieces, joints):
-    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts."""
-    from .layout import joint_directions, plan_pose
-
-    pins, openings = joint_directions(joints)
-    return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
-
-
 def _bed_labels(pieces, labels, poses):
     """Pieces left without a label get it mirrored on their bed side (after the base cut, which would take it off).
     Updates labels in place. -> (pieces, mm^3 removed)"""
@@ -354,36 +317,6 @@ def _bed_labels(pieces, labels, poses):
                 break
         out.append(p)
     return _like(pieces, out), removed
-
-
-def _base_cuts(pieces, poses):
-    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all)."""
-    import dataclasses
-
-    from .layout import base_cut
-
-    out, removed = [], 0.0
-    for p in pieces:
-        pose = poses.get(p.id)
-        if pose is None or pose.base_cut_mm <= 0:
-            out.append(p)
-            continue
-        mesh, v = base_cut(p.mesh, pose, p.id)
-        removed += v
-        out.append(dataclasses.replace(p, mesh=mesh, volume=p.volume - v, triangles=int(len(mesh.faces))))
-    return _like(pieces, out), removed
-
-
-def _print_entry(piece, pose, placement):
-    """report.json "print" of a piece: its pose, the (4, 4) transform to its plate, its bed contact there."""
-    from .layout import bed_contact
-
-    if pose is None or placement is None:
-        return None
-    entry = pose.to_report()
-    entry["plate_transform"] = np.round(placement.transform, 6).tolist()
-    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
-    return entry
 
 
 def _like(pieces, out):
@@ -504,69 +437,14 @@ def _texture(spec, stages, pieces, tolerance, timer, progress):
     return colors, report
 
 
-def _layout(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None):
-    """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
-    from .io.threemf import write_3mf
-    from .layout import joint_directions, layout
-    from .preview import plan_offsets, render_preview
-
-    pin_dirs, openings = joint_directions(joints)
-    parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
-    rgb = {p.id: c for p, c in zip(pieces, colors, strict=True)}
-    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
-                                poses=poses, hole_openings=openings)
-    meshes = dict(parts)
-    extras = {}
-    for pl in plates:
-        def write_plate(path, pl=pl):
-            objs = []
-            for place in placements:
-                if place.plate != pl.index:
-                    continue
-                m = meshes[place.name]
-                v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
-                objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
-            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
-                      colors=None if texture is None else [texture.get(o[0]) for o in objs])
-        extras[pl.file] = write_plate
-    if texture is not None:
-        from .texture import face_colors
-
-    def write_preview(path):
-        # pins a shade darker than their piece, so that they stand out
-        shaded = []
-        for p, c in zip(pieces, colors, strict=True):
-            flag = (pins or {}).get(p.id)
-            if texture is None and flag is None:
-                shaded.append(np.asarray(c, np.uint8))
-                continue
-            tri = (np.array(face_colors(c, texture[p.id]), np.uint8) if texture is not None
-                   else np.tile(np.asarray(c, np.uint8), (len(p.mesh.faces), 1)))
-            if flag is not None:
-                tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
-            shaded.append(tri)
-        index = {p.id: k for k, p in enumerate(pieces)}
-        on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
-        offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
-        render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
-                       plate=(on_plate, tuple(spec.output.plate)))
-
-    extras["preview.png"] = write_preview
-    if steps:
-        from .preview import render_steps
-
-        extras["steps"] = lambda path: render_steps(path, [p.mesh for p in pieces], [p.id for p in pieces],
-                                                    colors, steps)
-    return placements, plates, extras
-
-
 def validate(spec_path, allow_large=False):
     """`volpuzzle validate`: the spec, the model and every cross-check, without building. -> summary dict"""
+    from .layout import check_plate
     from .spec import load_spec, with_overrides
 
     spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     stages = prepare(spec)
-    _check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
+    check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
     clearance = 0.0 if stages["model"].mesh is not None else spec.output.face_clearance  # see build
     return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(stages["joints"]),
             "model": stages["model_report"], "randomize": stages["randomize_report"],
