@@ -104,7 +104,15 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
     from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces, check_printability
     from .compose import compose
-    from .export import check_target, piece_colors, report_piece_entry, spec_inputs, write_build
+    from .export import (
+        check_target,
+        piece_colors,
+        pin_triangles,
+        printable,
+        report_piece_entry,
+        spec_inputs,
+        write_build,
+    )
     from .joint import gap_volume, piece_joints_report
     from .layout import base_cuts, check_plate, plan_poses, plates_and_preview, print_entry
     from .spec import load_spec, spec_to_dict, with_overrides
@@ -135,7 +143,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
                 pieces, more = _bed_labels(pieces, labels, poses)
             engraved += more
         with timer("check", progress):
-            pieces = _printable(pieces)
+            pieces = printable(pieces)
             checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut)
         checks["base_cuts_mm3"] = round(cut, 3)
         state["poses"] = poses
@@ -328,35 +336,6 @@ def _like(pieces, out):
     return kept
 
 
-def _printable(pieces):
-    """Pieces exactly as STL and 3MF store them: float32 vertices. Rounding can merge the ends of micro-edges that
-    booleans and tessellation leave; those edges are collapsed (exact duplicates merged, triangles that repeat a
-    vertex dropped) so the checks judge the very mesh that is written."""
-    import dataclasses
-
-    import trimesh
-
-    from .check import closed_problem, signed_volume
-    from .geometry import weld
-
-    out = []
-    for p in pieces:
-        # + 0 turns -0.0 into 0.0, so that equal coordinates have equal bytes; a byte-wise unique is ~3x faster
-        # than np.unique(axis=0)
-        v32 = np.ascontiguousarray(np.asarray(p.mesh.vertices, dtype=np.float32) + np.float32(0.0))
-        _, first, inverse = np.unique(v32.view(np.dtype((np.void, 12))).ravel(), return_index=True,
-                                      return_inverse=True)
-        v, f = weld(v32[first].astype(np.float64), inverse.reshape(-1)[p.mesh.faces], 0.0)
-        mesh = trimesh.Trimesh(v, f, process=False)
-        problem = closed_problem(mesh)
-        if problem:
-            raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
-                                f"3MF files ({problem}); try a smaller output.tolerance")
-        out.append(dataclasses.replace(p, mesh=mesh, volume=signed_volume(v, f), triangles=int(len(f))))
-    out = _like(pieces, out)
-    return out
-
-
 def _label(spec, stages, pieces, joints, timer, progress, poses=None):
     """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
     None}, mm^3 removed)"""
@@ -397,29 +376,6 @@ def _label(spec, stages, pieces, joints, timer, progress, poses=None):
     removed = sum(r[2] for r in results)
     out = _like(pieces, out)
     return out, sites, removed
-
-
-def pin_triangles(pieces, joints):
-    """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
-    outer radius (a snap pin swells) and length. For the second (pin) material of 3MF files."""
-    from .joint import outer_radius
-
-    out = {}
-    for p in pieces:
-        mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
-        if not mine:
-            continue
-        c = p.mesh.triangles_center
-        flag = np.zeros(len(c), np.uint8)
-        for j in mine:
-            d = np.asarray(j.direction, float)
-            rel = c - np.asarray(j.center, float)
-            t = rel @ d
-            radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
-            reach = outer_radius(j.radius, j.shape) + 1e-3
-            flag |= ((t > 1e-3) & (t <= j.length + 1e-3) & (radial <= reach)).astype(np.uint8)
-        out[p.id] = flag
-    return out
 
 
 def _texture(spec, stages, pieces, tolerance, timer, progress):
