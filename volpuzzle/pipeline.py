@@ -114,8 +114,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         write_build,
     )
     from .joint import gap_volume, piece_joints_report
+    from .label import bed_labels, label_pieces
     from .layout import base_cuts, check_plate, plan_poses, plates_and_preview, print_entry
     from .spec import load_spec, spec_to_dict, with_overrides
+    from .texture import build_texture
 
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
@@ -126,7 +128,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     jobs = jobs or os.cpu_count() or 1
     joints = stages["joints"]
     tolerance = spec.output.tolerance
-    mesh_report = None
+    mesh_report, sampling = None, None
 
     state = {}
 
@@ -135,12 +137,15 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         build's own checks on exactly that."""
         with timer("layout", progress):
             poses = plan_poses(pieces, joints)
-        pieces, labels, engraved = _label(spec, stages, pieces, joints, timer, progress, poses)
+        labels, engraved = {}, 0.0
+        if spec.output.labels:
+            with timer("label", progress):
+                pieces, labels, engraved = label_pieces(stages["tiling"], stages["fmap"], pieces, joints, poses)
         with timer("layout", progress):
             pieces, cut = base_cuts(pieces, poses)
         if spec.output.labels:
             with timer("label", progress):
-                pieces, more = _bed_labels(pieces, labels, poses)
+                pieces, more = bed_labels(pieces, labels, poses)
             engraved += more
         with timer("check", progress):
             pieces = printable(pieces)
@@ -178,7 +183,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             with timer("compose", progress):
                 pieces = compose(stages["tiling"], stages["fmap"], joints, tolerance, jobs=jobs,
                                  progress=progress.piece, face_clearance=clearance)
-            face_gaps = face_clearance_volume(pieces.sampling, clearance)
+            sampling = pieces.sampling  # the finishing stages return plain lists
+            face_gaps = face_clearance_volume(sampling, clearance)
             expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
             pieces, labels, engraved, checks = finish(pieces, joints, expected)
             deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
@@ -194,7 +200,6 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     checks["face_clearance_mm3"] = round(face_gaps, 3)
     checks["labels_engraved_mm3"] = round(engraved, 3)
     checks["tessellation_tolerance_mm"] = round(tolerance, 6)
-    sampling = getattr(pieces, "sampling", None)
     if sampling is not None:
         checks["max_surface_error_mm"] = round(float(sampling.max_error_mm), 6)
     assert_passed(checks)
@@ -210,7 +215,10 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
                          randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
-    texture, texture_report = _texture(spec, stages, pieces, tolerance, timer, progress)
+    texture, texture_report = None, None
+    if spec.texture is not None:
+        with timer("texture", progress):
+            texture, texture_report = build_texture(spec, stages["model"].volume, pieces, tolerance)
     with timer("layout", progress):
         placements, plates, extras = plates_and_preview(spec, pieces, dowels, joints, colors, pins, texture,
                                              state["poses"], assembly.get("steps"))
@@ -296,101 +304,6 @@ def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False)
         print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
-
-
-def _bed_labels(pieces, labels, poses):
-    """Pieces left without a label get it mirrored on their bed side (after the base cut, which would take it off).
-    Updates labels in place. -> (pieces, mm^3 removed)"""
-    import dataclasses
-
-    from .geometry import from_trimesh, to_trimesh
-    from .label import engrave_bed
-
-    out, removed = [], 0.0
-    for k, p in enumerate(pieces):
-        entry = labels.get(p.id)
-        pose = poses.get(p.id)
-        if (entry or {}).get("text") or pose is None:
-            out.append(p)
-            continue
-        body = from_trimesh(p.mesh, p.id)
-        for text in (p.id, str(k + 1)):
-            new, site = engrave_bed(body, pose.rotation, text, what=p.id)
-            if site is not None:
-                volume = float(new.volume())
-                mesh = to_trimesh(new)
-                removed += p.volume - volume
-                p = dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces)))
-                labels[p.id] = site
-                break
-        out.append(p)
-    return _like(pieces, out), removed
-
-
-def _like(pieces, out):
-    """`out` as the same kind of list as `pieces` (compose's Pieces carries .sampling and .seconds)."""
-    if not hasattr(pieces, "sampling"):
-        return out
-    kept = type(pieces)(out)
-    kept.sampling, kept.seconds = pieces.sampling, getattr(pieces, "seconds", None)
-    return kept
-
-
-def _label(spec, stages, pieces, joints, timer, progress, poses=None):
-    """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
-    None}, mm^3 removed)"""
-    import dataclasses
-
-    from .geometry import from_trimesh, to_trimesh
-    from .label import label_piece, site_on_joint_face
-
-    if not spec.output.labels:
-        return pieces, {}, 0.0
-    tiling, fmap = stages["tiling"], stages["fmap"]
-
-    poses = poses or {}
-
-    def one(k, p):
-        pose = poses.get(p.id)
-        # the piece id, else its number in the piece list (report.md gives the key)
-        texts = (p.id, str(k + 1))
-        try:
-            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
-                                           what=p.id, texts=texts, avoid=None if pose is None else pose.down)
-        except GeometryError as e:
-            # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
-            return p, {"skipped": str(e)}, 0.0
-        if site is None:
-            return p, {"skipped": note}, 0.0
-        mesh = to_trimesh(body)
-        volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
-        entry = site.to_report()
-        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, joints, p.cell))
-        return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
-                entry, p.volume - volume)
-
-    with timer("label", progress):
-        results = [one(k, p) for k, p in enumerate(pieces)]
-    out = [r[0] for r in results]
-    sites = {p.id: r[1] for p, r in zip(pieces, results, strict=True)}
-    removed = sum(r[2] for r in results)
-    out = _like(pieces, out)
-    return out, sites, removed
-
-
-def _texture(spec, stages, pieces, tolerance, timer, progress):
-    """Per-triangle texture colours of every piece, or (None, None) without a texture."""
-    if spec.texture is None:
-        return None, None
-    from .texture import texture_pieces
-
-    with timer("texture", progress):
-        colors, report = texture_pieces(spec.texture, stages["model"].volume, pieces, tolerance)
-    if spec.output.format == "stl":
-        report["note"] = ("STL cannot hold colour: the pieces/*.stl files are plain; the texture is in puzzle.3mf, "
-                          "the plates and preview.png (output.format: 3mf gives coloured piece files too)")
-        print(f"warning: texture: {report['note']}", file=sys.stderr)
-    return colors, report
 
 
 def validate(spec_path, allow_large=False):
