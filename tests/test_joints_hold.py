@@ -95,17 +95,15 @@ def test_cylinders_apart_only_when_a_wall_fits_between_them():
 
 def test_welded_without_opt_in_fails_the_build_and_with_it_warns(monkeypatch, capsys):
     import volpuzzle.assembly as A
-    from volpuzzle import pipeline
-
     t, plan, joints, pieces = _built("box")
     stuck = sorted(pieces)[:2]
     monkeypatch.setattr(A, "verify_disassembly", lambda *_a, **_k: {
         "assembly_order": sorted(pieces), "steps": [], "welded": True, "stuck": stuck, "booleans": 0, "seconds": 0})
     with pytest.raises(GeometryError) as e:
-        pipeline._assembly(plan, [], joints, pipeline.Timer(), None)
+        A.replay_assembly(plan, [], joints)
     assert str(e.value).startswith(f"assembly: the puzzle is welded: {stuck[0]}, {stuck[1]} cannot be taken out")
     assert "joints.allow: [welded]" in str(e.value) and "\n" not in str(e.value)
-    res = pipeline._assembly(plan, [], joints, pipeline.Timer(), None, allow=("welded",))
+    res = A.replay_assembly(plan, [], joints, allow=("welded",))
     assert res["welded"] and "warning: the puzzle is welded" in capsys.readouterr().err
 
 

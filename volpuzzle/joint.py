@@ -918,3 +918,18 @@ def hole_solid_domain(j, cell_index):
     else:
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)} makes no hole in {piece_id(idx)}")
     return _checked(_hole_local(j).transform(m), f"domain hole in {piece_id(idx)}")
+
+
+def require_pieces_joined(spec, pieces, joints, contacts):
+    """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
+    problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
+                            contacts or (), spec.joints.style, spec.joints.allow, spec.grid)
+    if problem:
+        raise SpecError(problem, source=spec.source)
+
+
+def dowel_parts(joints):
+    """[(name, Trimesh)] the loose dowels of dowel joints, printed beside the pieces ("dowel-00", ...)."""
+    from .geometry import to_trimesh
+
+    return [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .errors import GeometryError, SpecError
+from .errors import GeometryError
 from .grid import AXES
 from .load import load_model_for
 from .progress import Progress, Timer
@@ -102,6 +102,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
           allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
+    from .assembly import replay_assembly
     from .check import BED_MIN_MM2, assert_passed, bed_contact_problem, check_pieces, check_printability
     from .compose import compose
     from .export import (
@@ -113,7 +114,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
         spec_inputs,
         write_build,
     )
-    from .joint import gap_volume, piece_joints_report
+    from .joint import dowel_parts, gap_volume, piece_joints_report, require_pieces_joined
     from .label import bed_labels, label_pieces
     from .layout import base_cuts, check_plate, plan_poses, plates_and_preview, print_entry
     from .spec import load_spec, spec_to_dict, with_overrides
@@ -194,7 +195,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             # Chords inside a convex surface lose volume in proportion to the chord error. The user's tolerance is
             # an upper bound, so tessellating finer still honours it while making the volumes add up.
             tolerance *= max(0.2, 0.6 * 0.005 / abs(checks["volume_error"]))
-    _require_joined(spec, pieces, joints, stages.get("contacts") or ())
+    require_pieces_joined(spec, pieces, joints, stages.get("contacts") or ())
     checks["joint_gaps_mm3"] = round(gaps, 3)
     checks["face_clearance_mm"] = clearance
     checks["face_clearance_mm3"] = round(face_gaps, 3)
@@ -205,14 +206,13 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     assert_passed(checks)
     for warning in _fit(spec, joints, clearance)["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
-    dowels = []
-    if spec.joints.style == "dowel":
-        from .geometry import to_trimesh
-        from .joint import dowel_solid
-
-        dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
-    assembly = _assembly(stages["plan"], pieces, joints, timer, progress, allow=spec.joints.allow,
-                         randomized=spec.randomize is not None)
+    dowels = dowel_parts(joints) if spec.joints.style == "dowel" else []
+    if stages["plan"] is None:  # nothing to replay, and no time to report for it
+        assembly = replay_assembly(None, pieces, joints)
+    else:
+        with timer("assembly", progress):
+            assembly = replay_assembly(stages["plan"], pieces, joints, allow=spec.joints.allow,
+                                       randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
     pins = pin_triangles(pieces, joints)
     texture, texture_report = None, None
@@ -271,39 +271,6 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report
-
-
-def _require_joined(spec, pieces, joints, contacts):
-    """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
-    from .grid import piece_id
-    from .joint import graph_problem
-
-    problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
-                            contacts or (), spec.joints.style, spec.joints.allow, spec.grid)
-    if problem:
-        raise SpecError(problem, source=spec.source)
-
-
-def _assembly(plan, pieces, joints, timer, progress, allow=(), randomized=False):
-    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck.
-    A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
-    from .assembly import steps_in_words, verify_disassembly
-
-    if plan is None:
-        return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
-    with timer("assembly", progress):
-        res = verify_disassembly(pieces, joints, plan)
-    if res["welded"]:
-        stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
-        if "welded" not in tuple(allow):
-            tries = "another grid (more pieces along a curved axis)" + (
-                ", a smaller randomize.amplitude, another randomize.seed" if randomized else "")
-            raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
-                                f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "
-                                f"joints.allow: [welded])")
-        print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
-    return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
-            "welded": bool(res["welded"]), "stuck": list(res["stuck"])}
 
 
 def validate(spec_path, allow_large=False):
