@@ -933,3 +933,24 @@ def dowel_parts(joints):
     from .geometry import to_trimesh
 
     return [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+
+
+def place_planned_joints(tiling, fmap, joint_spec):
+    """The joint stage of a volume model -> (Layout, assembly.AssemblyPlan with its joints, or None for style none or
+    a single cell). Raises SpecError unless every cell is joined (require_joined).
+
+    With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is planned
+    first (blocks that slide apart) and every pin of a split points along its sliding direction.
+    """
+    plan = None
+    if joint_spec.style != "none" and tiling.faces:
+        from .assembly import plan_assembly
+
+        plan = plan_assembly(tiling, fmap)
+    layout = place_joints(tiling, fmap, joint_spec, plan)
+    if plan is not None:
+        from .assembly import with_joints
+
+        plan = with_joints(plan, tiling, list(layout.joints))
+    require_joined(tiling, layout, joint_spec)
+    return layout, plan

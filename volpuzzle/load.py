@@ -69,3 +69,16 @@ def _load_mesh_model(spec):
     info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
             "cage": {k: v for k, v in cage_info.items() if isinstance(v, (int, float, str, list, tuple))}}
     return Model(cage, scale, info, mesh)
+
+
+def with_closed_axes(spec, model):
+    """The spec with the axes the model closes on itself added to spec.periodic: a shell's closed direction is
+    periodic whether or not the spec says so."""
+    import dataclasses
+
+    from .grid import AXES
+
+    closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
+    if not closed:
+        return spec
+    return dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))

@@ -670,9 +670,9 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
     from .compose import Piece, compose
     from .geometry import from_trimesh, to_trimesh
 
-    tiling, model = stages["tiling"], stages["model"]
+    tiling, model = stages.tiling, stages.model
     with timer("compose", progress):
-        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
+        bodies = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, progress=progress.piece)
         # Meshes often have vertices and edges exactly on a cage's mid-plane (a symmetric part centred in its cage).
         # The engine then splits the two sides by a perturbation that leaves them pinched along those edges, and
         # merging them welds a non-manifold solid. A shift far below print resolution moves them off the cuts.
