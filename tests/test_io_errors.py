@@ -457,3 +457,70 @@ def test_unreadable_3mf_file(tmp_path):
     from volpuzzle.io.threemf import read_3mf
 
     _refused(read_3mf, _write(tmp_path, "bad.3mf", b"PK\x03\x04 not a zip"), r"not a readable 3MF file: ")
+
+
+# --- writers: the 3MF writer and save_model refuse bad input with the file named ----------------------------------
+_TRI = ("t", np.eye(3), np.array([[0, 1, 2]]), (10, 20, 30), None)
+
+WRITE_3MF = {
+    "object items": (dict(objects=[_TRI[:4]]), r"object 0: expected \(name, vertices, faces, rgb, transform\), got 4 "
+                                               r"items"),
+    "vertices": (dict(objects=[("t", np.full((3, 3), np.nan), *_TRI[2:])]),
+                 r"object 't': vertices must be finite \(n, 3\), got shape \(3, 3\)"),
+    "faces": (dict(objects=[("t", np.eye(3), np.zeros((0, 3), int), *_TRI[3:])]),
+              r"object 't': faces must be a non-empty \(m, 3\) index array, got shape \(0, 3\)"),
+    "face indices": (dict(objects=[("t", np.eye(3), np.array([[0, 1, 3]]), *_TRI[3:])]),
+                     r"object 't': face indices must lie in \[0, 2\], got \[0, 3\]"),
+    "colour": (dict(objects=[(*_TRI[:3], (10, 20, 300), None)]),
+               r"object 't': colour must be 3 values in 0\.\.255, got \(10, 20, 300\)"),
+    "nothing": (dict(objects=[]), r"nothing to write \(got 0 objects, expected at least 1\)"),
+    "materials count": (dict(objects=[_TRI], materials=[None, None]),
+                        r"materials: got 2 entries, expected one per object \(1\)"),
+    "colors count": (dict(objects=[_TRI], colors=[]), r"colors: got 0 entries, expected one per object \(1\)"),
+    "materials values": (dict(objects=[_TRI], materials=[np.array([2])]),
+                         r"object 't': materials must be 1 values of 0 or 1, got shape \(1,\)"),
+    "material without colour": (dict(objects=[(*_TRI[:3], None, None)], materials=[np.array([1])]),
+                                r"object 't': a second material needs the object's own colour too"),
+    "colours without colour": (dict(objects=[(*_TRI[:3], None, None)], colors=[np.zeros((1, 3), int)]),
+                               r"object 't': per-triangle colours need the object's own colour too"),
+    "colours shape": (dict(objects=[_TRI], colors=[np.zeros((2, 3), int)]),
+                      r"object 't': colors must be \(1, 3\) or \(1, 3, 3\) values in 0\.\.255 or -1, got shape "
+                      r"\(2, 3\)"),
+}
+
+
+@pytest.mark.parametrize("case", list(WRITE_3MF))
+def test_3mf_writer_error(tmp_path, case):
+    from volpuzzle.errors import ExportError
+    from volpuzzle.io.threemf import write_3mf
+
+    path = tmp_path / "o.3mf"
+    with pytest.raises(ExportError, match=re.escape(str(path)) + ": " + WRITE_3MF[case][1]):
+        write_3mf(path, **WRITE_3MF[case][0])
+    assert not path.exists()
+
+
+def test_3mf_writer_unit_and_transform(tmp_path):
+    from volpuzzle.errors import ExportError
+    from volpuzzle.io.threemf import write_3mf
+
+    with pytest.raises(ExportError, match=r"3MF unit: got 'parsec', expected one of "):
+        write_3mf(tmp_path / "o.3mf", [_TRI], unit="parsec")
+    with pytest.raises(ExportError, match=r"3MF transform: got shape \(4, 4\) or non-finite values, expected a finite "
+                                          r"\(3, 4\) \[R \| t\]"):
+        write_3mf(tmp_path / "o.3mf", [(*_TRI[:4], np.eye(4))])
+
+
+def test_save_model_refuses_unknown_units_and_unwritable_places(tmp_path):
+    from volpuzzle.errors import ExportError
+    from volpuzzle.io import save_model
+    from volpuzzle.spline.volume import Volume
+
+    vol = Volume([1, 1, 1], _cube()["knots"], np.array(_cube()["control_points"]))
+    with pytest.raises(ExportError, match=re.escape(str(tmp_path / "m.json")) + r": units: expected one of mm, .*got "
+                                                                                  r"'parsec'"):
+        save_model(vol, tmp_path / "m.json", units="parsec")
+    target = tmp_path / "no-such-folder" / "m.json"
+    with pytest.raises(ExportError, match=re.escape(str(target)) + r": cannot write the model \(No such file or "
+                                                                   r"directory\)"):
+        save_model(vol, target)
