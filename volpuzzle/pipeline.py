@@ -42,7 +42,7 @@ class Stages:
     contacts: list[dict] | None  # joint.Layout.contacts report records; None in mesh mode (report "mesh" has them)
     model_report: dict  # report.json "model"
     randomize_report: dict  # report.json "randomize"
-    pieces: list[Piece] = ()  # as the files store them (labelled, base cut, float32)
+    pieces: list[Piece] = field(default_factory=list)  # as the files store them (labelled, base cut, float32)
     poses: dict[str, Pose] = field(default_factory=dict)  # by piece id
     labels: dict[str, dict | None] = field(default_factory=dict)  # label report by piece id
     engraved_mm3: float = 0.0  # removed by the labels
