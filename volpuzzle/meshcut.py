@@ -229,7 +229,7 @@ def merge_fragments(pieces, min_fraction=0.05):
 
 def _one_manifold_solid(m):
     """True when the Manifold is one body whose surface is still 2-manifold once stored as STL and 3MF store it
-    (float32 vertices, equal ones merged, collapsed triangles dropped, as pipeline._printable does): two parts that
+    (float32 vertices, equal ones merged, collapsed triangles dropped, as export.printable does): two parts that
     also touch along a line would share an edge among four triangles there."""
     from .geometry import to_trimesh, weld
 
