@@ -6,7 +6,6 @@ import dataclasses
 import itertools
 from collections import Counter
 from functools import cache
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from volpuzzle import assembly as A
 from volpuzzle import compose as C
 from volpuzzle import joint as J
 from volpuzzle.mapping import Map
+from volpuzzle.spec import JointSpec
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
@@ -66,8 +66,7 @@ def _map(vol, warp=None):
     return Map(vol, warp, int(np.sign(np.linalg.det(jac[0]))))
 
 
-SPEC = SimpleNamespace(style="pin", shape="cylinder", radius=None, length=None, clearance=0.15, axial_clearance=0.3,
-                       space="physical")
+SPEC = JointSpec()
 
 
 def _ring_tiling(twist, grid=(2, 2, 8)):

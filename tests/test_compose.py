@@ -2,7 +2,6 @@
 within the tolerance, shared faces identical on both sides (also across seams), and the same pieces from a pool."""
 
 from functools import cache
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from volpuzzle.compose import cell_joints, pool
 from volpuzzle.compose import sampling as compose_sampling
 from volpuzzle.errors import GeometryError
 from volpuzzle.mapping import Map
+from volpuzzle.spec import JointSpec
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import Seam
 from volpuzzle.tile import tile
@@ -333,8 +333,7 @@ def test_tolerance_too_fine(monkeypatch):
 
 
 def _joint_spec(style="pin", space="physical"):
-    return SimpleNamespace(style=style, shape="cylinder", radius=None, length=None, clearance=0.15,
-                           axial_clearance=0.3, space=space)
+    return JointSpec(style=style, space=space)
 
 
 @pytest.mark.parametrize("style,space", [("pin", "physical"), ("dowel", "physical"), ("pin", "domain")])

@@ -210,7 +210,7 @@ def test_a_tolerance_finer_than_the_limit_is_refused_before_the_work(tmp_path, t
     spec = load_spec(path)
     assert spec.output.tolerance == float(tol)  # YAML 1.1 reads 1e-6 as a text; it is taken as the number
     from volpuzzle.limits import check_model_limits
-    from volpuzzle.pipeline import load_model_for
+    from volpuzzle.load import load_model_for
 
     vol = load_model_for(spec).volume
     _refused_fast(lambda: check_model_limits(spec, vol), "output.tolerance", "triangles", "limit of 2,000,000")

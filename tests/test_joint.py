@@ -2,7 +2,6 @@
 their holes with the asked clearance in mm, seam-crossing joints, and the fit errors."""
 
 from collections import Counter
-from types import SimpleNamespace
 
 import manifold3d as m3
 import numpy as np
@@ -14,6 +13,7 @@ from shapes import ring
 from volpuzzle import joint as J
 from volpuzzle.errors import GeometryError, SpecError
 from volpuzzle.mapping import Map
+from volpuzzle.spec import JointSpec
 from volpuzzle.spline import Volume
 from volpuzzle.spline.seams import find_seams
 from volpuzzle.tile import tile
@@ -55,10 +55,7 @@ def _tiling(vol, grid, periodic=()):
 
 
 def _spec(**kw):
-    base = dict(style="pin", shape="cylinder", radius=None, length=None, clearance=0.15, axial_clearance=0.3,
-                space="physical")
-    base.update(kw)
-    return SimpleNamespace(**base)
+    return JointSpec(**kw)
 
 
 def _roles(joints, tiling):

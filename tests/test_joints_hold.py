@@ -27,7 +27,7 @@ def _prepared(name, tmp_path, **over):
 
 
 def _assert_holds(stages):
-    tiling, joints, contacts = stages["tiling"], stages["joints"], stages["contacts"]
+    tiling, joints, contacts = stages.tiling, stages.joints, stages.contacts
     ids = [J.piece_id(c) for c in tiling.cells]
     parts, loose = J.joint_graph(ids, [(J.piece_id(j.pin_cell), J.piece_id(j.hole_cell)) for j in joints])
     assert loose == [] and len(parts) == 1
@@ -51,9 +51,9 @@ def test_every_piece_is_jointed_and_the_puzzle_is_one_part(name, tmp_path):
 
 def test_a_randomized_quarter_torus_pins_all_twelve_contacts(tmp_path):
     stages = _prepared("quarter-torus", tmp_path)
-    assert stages["randomize_report"]["amplitude"] > 0 and len(stages["tiling"].faces) == 12
-    assert len(stages["joints"]) == 12 and all(c["pinned"] for c in stages["contacts"])
-    assert len(stages["plan"].faces_with_joints) == 12
+    assert stages.randomize_report["amplitude"] > 0 and len(stages.tiling.faces) == 12
+    assert len(stages.joints) == 12 and all(c["pinned"] for c in stages.contacts)
+    assert len(stages.plan.faces_with_joints) == 12
 
 
 def test_the_twisted_pipe_in_inches_takes_a_radius_of_one_and_a_half(tmp_path):
@@ -64,7 +64,7 @@ def test_the_twisted_pipe_in_inches_takes_a_radius_of_one_and_a_half(tmp_path):
         "joints": {"radius": 1.5}, "output": {"directory": str(tmp_path / "out")}})
     stages = prepare(load_spec(spec))
     _assert_holds(stages)
-    assert all(j.radius == 1.5 and not j.shrunk for j in stages["joints"])
+    assert all(j.radius == 1.5 and not j.shrunk for j in stages.joints)
 
 
 def test_tilted_pins_and_holes_never_meet_inside_a_piece():
@@ -95,17 +95,15 @@ def test_cylinders_apart_only_when_a_wall_fits_between_them():
 
 def test_welded_without_opt_in_fails_the_build_and_with_it_warns(monkeypatch, capsys):
     import volpuzzle.assembly as A
-    from volpuzzle import pipeline
-
     t, plan, joints, pieces = _built("box")
     stuck = sorted(pieces)[:2]
     monkeypatch.setattr(A, "verify_disassembly", lambda *_a, **_k: {
         "assembly_order": sorted(pieces), "steps": [], "welded": True, "stuck": stuck, "booleans": 0, "seconds": 0})
     with pytest.raises(GeometryError) as e:
-        pipeline._assembly(plan, [], joints, pipeline.Timer(), None)
+        A.replay_assembly(plan, [], joints)
     assert str(e.value).startswith(f"assembly: the puzzle is welded: {stuck[0]}, {stuck[1]} cannot be taken out")
     assert "joints.allow: [welded]" in str(e.value) and "\n" not in str(e.value)
-    res = pipeline._assembly(plan, [], joints, pipeline.Timer(), None, allow=("welded",))
+    res = A.replay_assembly(plan, [], joints, allow=("welded",))
     assert res["welded"] and "warning: the puzzle is welded" in capsys.readouterr().err
 
 

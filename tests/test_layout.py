@@ -126,8 +126,8 @@ def test_pin_triangles_cover_the_pin_and_nothing_else():
     import manifold3d
 
     from volpuzzle.compose import Piece
+    from volpuzzle.export import pin_triangles
     from volpuzzle.geometry import to_trimesh
-    from volpuzzle.pipeline import pin_triangles
 
     r, length = 2.0, 6.0
     body = manifold3d.Manifold.cube([20, 20, 20]) + manifold3d.Manifold.cylinder(length + 1, r, r, 96).translate(

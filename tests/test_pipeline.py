@@ -78,7 +78,7 @@ def test_pin_that_does_not_fit(tmp_path):
 def test_a_pin_too_wide_shrinks_where_it_must_and_the_report_says_so(tmp_path):
     spec = small_box_spec(tmp_path, joints={"radius": 40})
     stages = volpuzzle.pipeline.prepare(volpuzzle.spec.load_spec(spec))
-    assert stages["joints"] and all(j.shrunk and j.radius < 40 for j in stages["joints"])
+    assert stages.joints and all(j.shrunk and j.radius < 40 for j in stages.joints)
 
 
 def test_unknown_builtin_is_a_spec_error(tmp_path):

@@ -76,17 +76,17 @@ def test_texture_spec_key(tmp_path):
 def test_stl_output_says_it_cannot_hold_colour(tmp_path, capsys):
     import dataclasses
 
-    from volpuzzle.pipeline import Model, Timer, _texture
     from volpuzzle.spec import load_spec_text
+    from volpuzzle.texture import build_texture
 
     (tmp_path / "e.png").write_bytes(IMAGE.read_bytes())
     spec = load_spec_text("name: e\nmodel: {builtin: sphere-shell}\ngrid: [2, 2, 1]\ntexture: {image: e.png}\n"
                           "output: {format: stl}\n", tmp_path / "s.yaml")
-    stages = {"model": Model(sphere_shell(50.0, 40.0), 1.0, {})}
+    volume = sphere_shell(50.0, 40.0)
     pieces = [_Piece("sahara", _patch(50.0, 23, 12))]
-    colors, report = _texture(spec, stages, pieces, 0.2, Timer(), None)
+    colors, report = build_texture(spec, volume, pieces, 0.2)
     assert "STL cannot hold colour" in report["note"]
     assert "warning: texture: STL cannot hold colour" in capsys.readouterr().err
     spec3 = dataclasses.replace(spec, output=dataclasses.replace(spec.output, format="3mf"))
-    assert "note" not in _texture(spec3, stages, pieces, 0.2, Timer(), None)[1]
+    assert "note" not in build_texture(spec3, volume, pieces, 0.2)[1]
     assert colors["sahara"].shape == (len(pieces[0].mesh.faces), 3, 3)

@@ -665,3 +665,24 @@ def steps_in_words(result):
     if result.get("welded"):
         lines.append(f"Warning: the puzzle is welded: {_names(result['stuck'])} cannot be taken apart.")
     return lines
+
+
+def replay_assembly(plan, pieces, joints, allow=(), randomized=False):
+    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck.
+    A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
+    import sys
+
+    if plan is None:
+        return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
+    res = verify_disassembly(pieces, joints, plan)
+    if res["welded"]:
+        stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
+        if "welded" not in tuple(allow):
+            tries = "another grid (more pieces along a curved axis)" + (
+                ", a smaller randomize.amplitude, another randomize.seed" if randomized else "")
+            raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
+                                f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "
+                                f"joints.allow: [welded])")
+        print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
+    return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
+            "welded": bool(res["welded"]), "stuck": list(res["stuck"])}

@@ -676,3 +676,53 @@ def _move_into_place(tmp: Path, target: Path) -> None:
         os.replace(old, target)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+def printable(pieces):
+    """Pieces exactly as STL and 3MF store them: float32 vertices. Rounding can merge the ends of micro-edges that
+    booleans and tessellation leave; those edges are collapsed (exact duplicates merged, triangles that repeat a
+    vertex dropped) so the checks judge the very mesh that is written."""
+    import dataclasses
+
+    from .check import closed_problem, signed_volume
+    from .errors import GeometryError
+    from .geometry import weld
+
+    out = []
+    for p in pieces:
+        # + 0 turns -0.0 into 0.0, so that equal coordinates have equal bytes; a byte-wise unique is ~3x faster
+        # than np.unique(axis=0)
+        v32 = np.ascontiguousarray(np.asarray(p.mesh.vertices, dtype=np.float32) + np.float32(0.0))
+        _, first, inverse = np.unique(v32.view(np.dtype((np.void, 12))).ravel(), return_index=True,
+                                      return_inverse=True)
+        v, f = weld(v32[first].astype(np.float64), inverse.reshape(-1)[p.mesh.faces], 0.0)
+        mesh = trimesh.Trimesh(v, f, process=False)
+        problem = closed_problem(mesh)
+        if problem:
+            raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
+                                f"3MF files ({problem}); try a smaller output.tolerance")
+        out.append(dataclasses.replace(p, mesh=mesh, volume=signed_volume(v, f), triangles=int(len(f))))
+    return out
+
+
+def pin_triangles(pieces, joints):
+    """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
+    outer radius (a snap pin swells) and length. For the second (pin) material of 3MF files."""
+    from .joint import outer_radius
+
+    out = {}
+    for p in pieces:
+        mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
+        if not mine:
+            continue
+        c = p.mesh.triangles_center
+        flag = np.zeros(len(c), np.uint8)
+        for j in mine:
+            d = np.asarray(j.direction, float)
+            rel = c - np.asarray(j.center, float)
+            t = rel @ d
+            radial = np.linalg.norm(rel - t[:, None] * d, axis=1)
+            reach = outer_radius(j.radius, j.shape) + 1e-3
+            flag |= ((t > 1e-3) & (t <= j.length + 1e-3) & (radial <= reach)).astype(np.uint8)
+        out[p.id] = flag
+    return out

@@ -40,16 +40,18 @@ import numpy as np
 from .errors import GeometryError, SpecError
 from .geometry import is_ok
 from .grid import AXES, frame_from_direction, piece_id
+from .spec import JOINT_ALLOW, JointSpec
 
 CIRCLE_TOL = 0.02  # mm: largest distance between a joint's polygon and its circle
 SNAP_SWELL = 1.15  # widest radius of a snap pin, in pin radii
-DEFAULT_CLEARANCE = 0.15
-DEFAULT_AXIAL_CLEARANCE = 0.3
-MIN_RADIUS = 1.0  # mm: the smallest pin a pin shrinks to by default (2 mm across: four lines of a 0.4 mm nozzle)
-MIN_LENGTH = 3.0  # mm: the shortest pin that still holds its piece by default
+# The joint defaults have one home, spec.JointSpec (what a spec without the key gets); named here for the stage.
+DEFAULT_CLEARANCE = JointSpec.clearance  # mm, radial
+DEFAULT_AXIAL_CLEARANCE = JointSpec.axial_clearance  # mm, at the pin's tip
+MIN_RADIUS = JointSpec.min_radius  # mm: the smallest pin a pin shrinks to (2 mm across: four lines of a 0.4 mm nozzle)
+MIN_LENGTH = JointSpec.min_length  # mm: the shortest pin that still holds its piece
 DEFAULT_MAX_RADIUS = 2.5  # mm: a derived radius stops growing here; larger pins only when asked
 MAX_TILT_DEG = 30.0  # the most a straight pin may lean against its face (see the module docstring)
-ALLOW = ("loose", "welded")  # what joints.allow may accept: pieces without a joint, pieces that cannot come out
+ALLOW = JOINT_ALLOW  # what joints.allow may accept: pieces without a joint, pieces that cannot come out
 
 
 def wall(radius):
@@ -524,11 +526,6 @@ def _largest_fit(fd, sizes, r_hi, l_min, lean=False):
     return _round_down(lo)
 
 
-def _spec_value(spec, name, default):
-    v = getattr(spec, name, None) if spec is not None else None
-    return default if v is None else v
-
-
 def _split_dirs(tiling, fmap, plan):
     """{face number: unit mm direction from its lower to its upper cell} along the sliding direction of the one
     split of the plan that parts the face's two cells."""
@@ -549,26 +546,23 @@ def _split_dirs(tiling, fmap, plan):
 def place_joints(tiling, fmap, joint_spec=None, plan=None):
     """A joint on every shared face with room for one -> Layout (joints, one contact record per face).
 
-    joint_spec: any object with style, shape, radius, length, clearance, axial_clearance, space and optionally
-    min_radius, min_length (None = defaults); plan: volpuzzle.assembly.AssemblyPlan, whose splits set the pins'
-    directions and whose faces are placed first (None: pins normal to their faces). Raises SpecError for sizes that
-    are not positive; a face without room is not an error here (see require_joined).
+    joint_spec: spec.JointSpec (None: its defaults; radius and length None are derived here); plan:
+    volpuzzle.assembly.AssemblyPlan, whose splits set the pins' directions and whose faces are placed first (None:
+    pins normal to their faces). Raises SpecError for sizes that are not positive; a face without room is not an error
+    here (see require_joined).
     """
-    style = str(_spec_value(joint_spec, "style", "pin"))
+    joint_spec = joint_spec if joint_spec is not None else JointSpec()
+    style = joint_spec.style
     if style == "none" or not tiling.faces:
         return Layout((), tuple(_contact(f, False, None, "joints.style is none" if style == "none" else None)
                                 for f in tiling.faces))
-    space = str(_spec_value(joint_spec, "space", "physical"))
+    space = joint_spec.space
     geo = _measure(tiling, fmap)
-    r_given = getattr(joint_spec, "radius", None) if joint_spec is not None else None
-    l_given = getattr(joint_spec, "length", None) if joint_spec is not None else None
+    r_given, l_given = joint_spec.radius, joint_spec.length
     r_def, l_def = default_sizes(tiling, fmap, geo)
     sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
-                   float(_spec_value(joint_spec, "clearance", DEFAULT_CLEARANCE)),
-                   float(_spec_value(joint_spec, "axial_clearance", DEFAULT_AXIAL_CLEARANCE)),
-                   style, str(_spec_value(joint_spec, "shape", "cylinder")))
-    r_min = float(_spec_value(joint_spec, "min_radius", MIN_RADIUS))
-    l_min = float(_spec_value(joint_spec, "min_length", MIN_LENGTH))
+                   float(joint_spec.clearance), float(joint_spec.axial_clearance), style, joint_spec.shape)
+    r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
     problems = []
     for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
                         ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
@@ -765,11 +759,11 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
 
 def require_joined(tiling, layout, joint_spec=None):
     """Raise SpecError (one line) unless every cell has a joint and the joints join all cells into one part; style
-    none and joints.allow: [loose] excepted."""
+    none and joints.allow: [loose] excepted. joint_spec: spec.JointSpec (None: its defaults)."""
+    joint_spec = joint_spec if joint_spec is not None else JointSpec()
     problem = graph_problem([piece_id(c) for c in tiling.cells],
                             [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in layout.joints],
-                            layout.contacts, str(_spec_value(joint_spec, "style", "pin")),
-                            tuple(_spec_value(joint_spec, "allow", ())), tiling.grid)
+                            layout.contacts, joint_spec.style, tuple(joint_spec.allow), tiling.grid)
     if problem:
         raise SpecError(problem)
 
@@ -918,3 +912,39 @@ def hole_solid_domain(j, cell_index):
     else:
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)} makes no hole in {piece_id(idx)}")
     return _checked(_hole_local(j).transform(m), f"domain hole in {piece_id(idx)}")
+
+
+def require_pieces_joined(spec, pieces, joints, contacts):
+    """The final pieces must all carry a joint and hang together (volpuzzle.joint.graph_problem), unless allowed."""
+    problem = graph_problem([p.id for p in pieces], [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in joints],
+                            contacts or (), spec.joints.style, spec.joints.allow, spec.grid)
+    if problem:
+        raise SpecError(problem, source=spec.source)
+
+
+def dowel_parts(joints):
+    """[(name, Trimesh)] the loose dowels of dowel joints, printed beside the pieces ("dowel-00", ...)."""
+    from .geometry import to_trimesh
+
+    return [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+
+
+def place_planned_joints(tiling, fmap, joint_spec):
+    """The joint stage of a volume model -> (Layout, assembly.AssemblyPlan with its joints, or None for style none or
+    a single cell). Raises SpecError unless every cell is joined (require_joined).
+
+    With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is planned
+    first (blocks that slide apart) and every pin of a split points along its sliding direction.
+    """
+    plan = None
+    if joint_spec.style != "none" and tiling.faces:
+        from .assembly import plan_assembly
+
+        plan = plan_assembly(tiling, fmap)
+    layout = place_joints(tiling, fmap, joint_spec, plan)
+    if plan is not None:
+        from .assembly import with_joints
+
+        plan = with_joints(plan, tiling, list(layout.joints))
+    require_joined(tiling, layout, joint_spec)
+    return layout, plan

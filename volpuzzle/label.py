@@ -824,3 +824,66 @@ def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
                                      "center_mm": [round(float(x), 4) for x in centre[:3]],
                                      "normal": [round(float(x), 6) for x in down], "on_joint_face": False}
     return body, None
+
+
+def label_pieces(tiling, fmap, pieces, joints, poses=None):
+    """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
+    None}, mm^3 removed)"""
+    import dataclasses
+
+    from .geometry import from_trimesh, to_trimesh
+
+    poses = poses or {}
+
+    def one(k, p):
+        pose = poses.get(p.id)
+        # the piece id, else its number in the piece list (report.md gives the key)
+        texts = (p.id, str(k + 1))
+        try:
+            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+                                           what=p.id, texts=texts, avoid=None if pose is None else pose.down)
+        except GeometryError as e:
+            # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
+            return p, {"skipped": str(e)}, 0.0
+        if site is None:
+            return p, {"skipped": note}, 0.0
+        mesh = to_trimesh(body)
+        volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
+        entry = site.to_report()
+        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, joints, p.cell))
+        return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
+                entry, p.volume - volume)
+
+    results = [one(k, p) for k, p in enumerate(pieces)]
+    out = [r[0] for r in results]
+    sites = {p.id: r[1] for p, r in zip(pieces, results, strict=True)}
+    removed = sum(r[2] for r in results)
+    return out, sites, removed
+
+
+def bed_labels(pieces, labels, poses):
+    """Pieces left without a label get it mirrored on their bed side (after the base cut, which would take it off).
+    Updates labels in place. -> (pieces, mm^3 removed)"""
+    import dataclasses
+
+    from .geometry import from_trimesh, to_trimesh
+
+    out, removed = [], 0.0
+    for k, p in enumerate(pieces):
+        entry = labels.get(p.id)
+        pose = poses.get(p.id)
+        if (entry or {}).get("text") or pose is None:
+            out.append(p)
+            continue
+        body = from_trimesh(p.mesh, p.id)
+        for text in (p.id, str(k + 1)):
+            new, site = engrave_bed(body, pose.rotation, text, what=p.id)
+            if site is not None:
+                volume = float(new.volume())
+                mesh = to_trimesh(new)
+                removed += p.volume - volume
+                p = dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces)))
+                labels[p.id] = site
+                break
+        out.append(p)
+    return out, removed

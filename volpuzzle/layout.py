@@ -387,3 +387,118 @@ def _guillotine(extents, order, plate, spacing):
 def _hull_area(points):
     """Area of the 2D convex hull of (n, 2) points (scipy calls a 2D hull's area its volume)."""
     return float(ConvexHull(points).volume)
+
+
+def check_plate(spec, tiling, fmap):
+    """Refuse a plate smaller than the largest piece before any mesh is built, naming the size needed."""
+    plate = np.sort(np.asarray(spec.output.plate, float))[::-1]
+    t = np.linspace(0, 1, 5)
+    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    cells = list(tiling.cells.values())
+    pts = fmap.evaluate(np.concatenate([c.box[0] + grid * (c.box[1] - c.box[0]) for c in cells]))
+    pts = pts.reshape(len(cells), len(grid), 3)
+
+    def footprint(p, exact):
+        # a box along the principal axes that fits proves the piece fits; only a misfit needs trimesh's smallest box
+        # (about 10 ms a piece)
+        if exact:
+            ext = trimesh.bounds.oriented_bounds(p)[1]
+        else:
+            q = p - p.mean(axis=0)
+            ext = np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2].T, axis=0)
+        return np.sort(ext)[::-1][:2] + 2 * spec.output.spacing + 2 * spec.output.margin
+
+    if all(np.all(footprint(p, False) <= plate + 1e-9) for p in pts):
+        return
+    need = np.max([footprint(p, True) for p in pts], axis=0)
+    if np.any(need > plate + 1e-9):
+        raise SpecError(f"output.plate: the largest piece needs about {need[0]:.0f} x {need[1]:.0f} mm with "
+                        f"output.spacing and output.margin (got {list(spec.output.plate)}, expected at least "
+                        f"[{np.ceil(need[0]):.0f}, {np.ceil(need[1]):.0f}])", source=spec.source)
+
+
+def plan_poses(pieces, joints):
+    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts."""
+    pins, openings = joint_directions(joints)
+    return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
+
+
+def base_cuts(pieces, poses):
+    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all)."""
+    import dataclasses
+
+    out, removed = [], 0.0
+    for p in pieces:
+        pose = poses.get(p.id)
+        if pose is None or pose.base_cut_mm <= 0:
+            out.append(p)
+            continue
+        mesh, v = base_cut(p.mesh, pose, p.id)
+        removed += v
+        out.append(dataclasses.replace(p, mesh=mesh, volume=p.volume - v, triangles=int(len(mesh.faces))))
+    return out, removed
+
+
+def print_entry(piece, pose, placement):
+    """report.json "print" of a piece: its pose, the (4, 4) transform to its plate, its bed contact there."""
+    if pose is None or placement is None:
+        return None
+    entry = pose.to_report()
+    entry["plate_transform"] = np.round(placement.transform, 6).tolist()
+    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
+    return entry
+
+
+def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None):
+    """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
+    from .io.threemf import write_3mf
+    from .preview import plan_offsets, render_preview
+
+    pin_dirs, openings = joint_directions(joints)
+    parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
+    rgb = {p.id: c for p, c in zip(pieces, colors, strict=True)}
+    placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
+                                poses=poses, hole_openings=openings)
+    meshes = dict(parts)
+    extras = {}
+    for pl in plates:
+        def write_plate(path, pl=pl):
+            objs = []
+            for place in placements:
+                if place.plate != pl.index:
+                    continue
+                m = meshes[place.name]
+                v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
+                objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
+            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
+                      colors=None if texture is None else [texture.get(o[0]) for o in objs])
+        extras[pl.file] = write_plate
+    if texture is not None:
+        from .texture import face_colors
+
+    def write_preview(path):
+        # pins a shade darker than their piece, so that they stand out
+        shaded = []
+        for p, c in zip(pieces, colors, strict=True):
+            flag = (pins or {}).get(p.id)
+            if texture is None and flag is None:
+                shaded.append(np.asarray(c, np.uint8))
+                continue
+            tri = (np.array(face_colors(c, texture[p.id]), np.uint8) if texture is not None
+                   else np.tile(np.asarray(c, np.uint8), (len(p.mesh.faces), 1)))
+            if flag is not None:
+                tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
+            shaded.append(tri)
+        index = {p.id: k for k, p in enumerate(pieces)}
+        on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
+        offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
+        render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
+                       plate=(on_plate, tuple(spec.output.plate)))
+
+    extras["preview.png"] = write_preview
+    if steps:
+        from .preview import render_steps
+
+        extras["steps"] = lambda path: render_steps(path, [p.mesh for p in pieces], [p.id for p in pieces],
+                                                    colors, steps)
+    return placements, plates, extras

@@ -229,7 +229,7 @@ def merge_fragments(pieces, min_fraction=0.05):
 
 def _one_manifold_solid(m):
     """True when the Manifold is one body whose surface is still 2-manifold once stored as STL and 3MF store it
-    (float32 vertices, equal ones merged, collapsed triangles dropped, as pipeline._printable does): two parts that
+    (float32 vertices, equal ones merged, collapsed triangles dropped, as export.printable does): two parts that
     also touch along a line would share an edge among four triangles there."""
     from .geometry import to_trimesh, weld
 
@@ -670,9 +670,9 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
     from .compose import Piece, compose
     from .geometry import from_trimesh, to_trimesh
 
-    tiling, model = stages["tiling"], stages["model"]
+    tiling, model = stages.tiling, stages.model
     with timer("compose", progress):
-        bodies = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, progress=progress.piece)
+        bodies = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, progress=progress.piece)
         # Meshes often have vertices and edges exactly on a cage's mid-plane (a symmetric part centred in its cage).
         # The engine then splits the two sides by a perturbation that leaves them pinched along those edges, and
         # merging them welds a non-manifold solid. A shift far below print resolution moves them off the cuts.

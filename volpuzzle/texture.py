@@ -128,3 +128,17 @@ def blend(piece_rgb, colors):
 def face_colors(piece_rgb, colors):
     """(m, 3) one colour per triangle (the mean of its corners), for pictures."""
     return np.round(blend(piece_rgb, colors).mean(axis=1)).astype(np.uint8)
+
+
+def build_texture(spec, volume, pieces, tolerance):
+    """Per-triangle texture colours of every piece, or (None, None) without a texture."""
+    import sys
+
+    if spec.texture is None:
+        return None, None
+    colors, report = texture_pieces(spec.texture, volume, pieces, tolerance)
+    if spec.output.format == "stl":
+        report["note"] = ("STL cannot hold colour: the pieces/*.stl files are plain; the texture is in puzzle.3mf, "
+                          "the plates and preview.png (output.format: 3mf gives coloured piece files too)")
+        print(f"warning: texture: {report['note']}", file=sys.stderr)
+    return colors, report

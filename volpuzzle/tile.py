@@ -239,3 +239,39 @@ def tile(vol, grid, splits=None, periodic=(), seams=None, mass=None):
     domain = vol.domain_array.copy()
     domain.setflags(write=False)
     return Tiling(domain, breaks, tuple(sorted(periodic)), seams, cells, tuple(faces))
+
+
+def seams_for(spec, vol):
+    """The seams of vol's closed axes (spline.seams.find_seams) -> ({axis: seam} of those spec.periodic asks to join,
+    {axis: seam} of all found, for the report)."""
+    from .spline.seams import find_seams
+
+    found = find_seams(vol)
+    return {a: s for a, s in found.items() if a in spec.periodic}, found
+
+
+def check_grid_vs_tolerance(spec, tiling, fmap):
+    """A cell thinner than a few tolerances cannot be printed or joined; say which grid would fit."""
+    problems = []
+    tol = spec.output.tolerance
+    for a in range(3):
+        lengths = []
+        for cell in tiling.cells.values():
+            lo, hi = cell.box
+            mid = cell.center
+            p0, p1 = mid.copy(), mid.copy()
+            p0[a], p1[a] = lo[a], hi[a]
+            ts = np.linspace(0, 1, 9)[:, None]
+            pts = fmap.evaluate(p0 + ts * (p1 - p0))
+            lengths.append(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
+        smallest = min(lengths)
+        # Below about ten tolerances the chords of a piece are as coarse as the piece itself.
+        if smallest < 10 * tol:
+            fit = int(spec.grid[a] * smallest / (10 * tol))
+            advice = (f"at most {fit} along {AXES[a]} or output.tolerance at most {smallest / 10:.3g} mm" if fit >= 1
+                      else f"output.tolerance at most {smallest / 10:.3g} mm")
+            problems.append(
+                f"grid: {spec.grid[a]} pieces along {AXES[a]} make pieces {smallest:.3g} mm thin, too thin for "
+                f"output.tolerance {tol:g} mm (got {spec.grid[a]}, expected {advice})")
+    if problems:
+        raise SpecError(problems, source=spec.source)

@@ -1,0 +1,84 @@
+"""The load stage: the model M read from its file, built in, or a shell or a closed mesh in its cage, in mm."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import SpecError
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """The model M in mm, ready for the stages, and what the report says of it."""
+
+    volume: object  # spline.Volume, control points in mm (the cage, in mesh mode)
+    scale: float  # mm per model unit, including `size`
+    info: dict
+    mesh: object = None  # trimesh.Trimesh in mm, in mesh mode: each piece is finally intersected with it
+
+
+def _scaled(vol, factor):
+    return vol if factor == 1.0 else vol.scaled(factor)
+
+
+def load_model_for(spec):
+    """Read or construct M, scale it to mm (units, then size). -> Model"""
+    from .io import load_model_with_meta
+    from .spline.measure import bbox
+
+    ms = spec.model
+    if ms.builtin is not None:
+        from .models import make_builtin
+
+        vol, meta = make_builtin(ms.builtin), {"format": "builtin", "units": "mm"}
+    elif ms.nurbs is not None:
+        vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
+    elif ms.shell is not None:
+        from .shell import load_shell
+
+        # the thickness is mm of the printed object, so the surface is sized before it is offset
+        shell, scale, meta = load_shell(ms.shell, ms.unit_scale, ms.size, spec.output.tolerance)
+        return Model(shell.volume, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale,
+                                           "shell": shell.info})
+    else:
+        return _load_mesh_model(spec)
+    scale = ms.unit_scale
+    vol = _scaled(vol, scale)
+    if ms.size is not None:
+        lo, hi = bbox(vol)
+        largest = float(np.max(np.asarray(hi) - np.asarray(lo)))
+        factor = ms.size / largest
+        vol = _scaled(vol, factor)
+        scale *= factor
+    return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale})
+
+
+def _load_mesh_model(spec):
+    """A closed mesh in mm and the cage fitted around it (paper section 5)."""
+    from .cage import check_inside, make_cage
+    from .io.mesh import load_mesh_scaled
+
+    ms = spec.model
+    if spec.joints.space == "domain" and spec.joints.style != "none":
+        raise SpecError("joints.space: pins built in the domain are not supported with a mesh model "
+                        "(got domain, expected physical)", source=spec.source)
+    mesh, scale = load_mesh_scaled(ms.mesh, unit_scale=ms.unit_scale, size=ms.size, repair=ms.repair)
+    cage, cage_info = make_cage(mesh, ms.cage, scale=scale,
+                                balance_grid=spec.grid if "balanced" in spec.splits else None)
+    check_inside(mesh, cage)
+    info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
+            "cage": {k: v for k, v in cage_info.items() if isinstance(v, (int, float, str, list, tuple))}}
+    return Model(cage, scale, info, mesh)
+
+
+def with_closed_axes(spec, model):
+    """The spec with the axes the model closes on itself added to spec.periodic: a shell's closed direction is
+    periodic whether or not the spec says so."""
+    import dataclasses
+
+    from .grid import AXES
+
+    closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
+    if not closed:
+        return spec
+    return dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))
