@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import math
 import time
-import weakref
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,32 +17,11 @@ import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
 from .geometry import is_ok
+from .geometry import memo as _memo
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
            "check_joint_graph", "check_printability", "bed_contact_problem", "pin_fit", "fit_line"]
-
-# id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
-# (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
-# assembly replay), and a conversion or a closedness test costs milliseconds per piece.
-_MEMO = {}
-
-
-def _memo(mesh, what, make):
-    """make(), computed once per mesh object and kind of result while the mesh's content stays the same (a
-    trimesh hashes its arrays and notices its own edits; other objects are not remembered)."""
-    if not isinstance(mesh, trimesh.Trimesh):
-        return make()
-    h = hash(mesh)
-    key = id(mesh)
-    entry = _MEMO.get(key)
-    if entry is None or entry[0]() is not mesh or entry[1] != h:
-        entry = (weakref.ref(mesh, lambda _, key=key: _MEMO.pop(key, None)), h, {})
-        _MEMO[key] = entry
-    if what not in entry[2]:
-        entry[2][what] = make()
-    return entry[2][what]
-
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Signed volume of a closed triangle mesh (divergence theorem): positive when normals point outwards."""
