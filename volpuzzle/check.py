@@ -21,7 +21,8 @@ from .geometry import memo as _memo
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
-           "check_joint_graph", "check_printability", "bed_contact_problem", "pin_fit", "fit_line"]
+           "check_joint_graph", "check_printability", "piece_bed_contact", "bed_contact_problem", "pin_fit",
+           "fit_line"]
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Signed volume of a closed triangle mesh (divergence theorem): positive when normals point outwards."""
@@ -589,10 +590,18 @@ def fit_line(fit):
             f"{fit['face_clearance_mm']:g} mm")
 
 
-def _mesh_contact(mesh, transform):
+def piece_bed_contact(mesh, transform, pid="piece"):
+    """layout.bed_contact of a piece mesh placed by transform (4, 4), from its piece_solid; remembered per mesh and
+    transform, since the build's report entry and its printability check measure the very same placement."""
     from .layout import bed_contact
 
-    return bed_contact(mesh.vertices, mesh.faces, transform)
+    transform = np.asarray(transform, float)
+
+    def make():
+        solid = piece_solid(mesh, pid)
+        return bed_contact(mesh.vertices, mesh.faces, transform, solid=None if isinstance(solid, str) else solid)
+
+    return _memo(mesh, ("bed_contact", transform.tobytes()), make)
 
 
 def bed_contact_problem(under) -> str:
@@ -617,7 +626,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
             warnings.append(f"piece {pid}: report.json gives no print orientation; its bed contact was not checked")
             continue
         try:
-            contact[pid] = round(_mesh_contact(mesh, np.asarray(transform, float)), 2)
+            contact[pid] = round(piece_bed_contact(mesh, transform, pid), 2)
         except GeometryError as e:
             failures.append(f"piece {pid}: bed contact not measured ({e})")
             continue

@@ -87,6 +87,12 @@ def from_trimesh(mesh, what):
     return manifold_from_mesh(mesh.vertices, mesh.faces, what)
 
 
+def solid_of(mesh, what):
+    """from_trimesh(mesh, what), made once per mesh object while its content stays the same (memo): stages that
+    read the same piece share its Manifold, which no operation changes in place."""
+    return memo(mesh, "solid_keep_faces", lambda: from_trimesh(mesh, what))
+
+
 def boolean(a, b, op, what):
     """a op b for op in 'union' | 'difference' | 'intersection'; checks the status of the result."""
     if op not in _OPS:

@@ -517,13 +517,14 @@ def _base_cuts(pieces, poses):
 
 def _print_entry(piece, pose, placement):
     """report.json "print" of a piece: its pose, the (4, 4) transform to its plate, its bed contact there."""
-    from .layout import bed_contact
+    from .check import piece_bed_contact
 
     if pose is None or placement is None:
         return None
     entry = pose.to_report()
     entry["plate_transform"] = np.round(placement.transform, 6).tolist()
-    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
+    # on the transform as stored, so that the printability check measures this very placement (once)
+    entry["bed_contact_mm2"] = round(piece_bed_contact(piece.mesh, entry["plate_transform"], piece.id), 2)
     return entry
 
 
@@ -570,7 +571,7 @@ def _label(spec, stages, pieces, joints, timer, progress, poses=None):
     None}, mm^3 removed)"""
     import dataclasses
 
-    from .geometry import from_trimesh, to_trimesh
+    from .geometry import solid_of, to_trimesh
     from .label import label_piece, site_on_joint_face
 
     if not spec.output.labels:
@@ -584,7 +585,7 @@ def _label(spec, stages, pieces, joints, timer, progress, poses=None):
         # the piece id, else its number in the piece list (report.md gives the key)
         texts = (p.id, str(k + 1))
         try:
-            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+            body, site, note = label_piece(solid_of(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
                                            what=p.id, texts=texts, avoid=None if pose is None else pose.down)
         except GeometryError as e:
             # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
