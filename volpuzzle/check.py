@@ -24,6 +24,7 @@ __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", 
            "check_joint_graph", "check_printability", "piece_bed_contact", "bed_contact_problem", "pin_fit",
            "fit_line"]
 
+
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Signed volume of a closed triangle mesh (divergence theorem): positive when normals point outwards."""
     if len(faces) == 0:
