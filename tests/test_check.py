@@ -162,3 +162,26 @@ def test_candidate_pairs_are_exactly_the_boxes_sharing_more_than_the_limit(limit
     assert want  # the scene has overlapping boxes to find
     assert candidate_pairs(bounds, limit) == want
     assert candidate_pairs(bounds, limit, chunk=5) == want
+
+
+def _slab(x0, x1):
+    """A 10 x 10 box from x0 to x1 along x, its faces finely triangulated (vertices every ~1 mm)."""
+    box = trimesh.creation.box([x1 - x0, 10, 10]).subdivide().subdivide().subdivide()
+    return box.apply_translation([(x0 + x1) / 2, 0, 0])
+
+
+def test_face_gaps_after_a_touching_pair_keep_the_least_gap_and_its_pair():
+    from volpuzzle.check import _face_gaps, piece_solid
+
+    # p0 | p1 touch; p1 and p2 stand 0.1 apart, p2 and p3 0.2: the least gap is p0/p1's 0 whatever comes after
+    meshes = {"p0": _slab(0, 10), "p1": _slab(10, 20), "p2": _slab(20.1, 30), "p3": _slab(30.2, 40)}
+    gaps = _face_gaps(meshes, 0.3)
+    assert [g[:2] for g in gaps] == [("p0", "p1"), ("p1", "p2"), ("p2", "p3")]
+    exact = [float(piece_solid(meshes[a], a).min_gap(piece_solid(meshes[b], b), 0.9)) for a, b, *_ in gaps]
+    assert exact == pytest.approx([0.0, 0.1, 0.2], abs=1e-9)
+    assert gaps[0][3] == 0.0
+    assert all(g[3] >= e - 1e-9 for g, e in zip(gaps, exact, strict=True))  # later pairs: an upper bound, not less
+    assert min(gaps, key=lambda g: g[3])[:2] == ("p0", "p1")
+    # without the touching pair every gap is the engine's
+    del meshes["p0"]
+    assert [g[3] for g in _face_gaps(meshes, 0.3)] == pytest.approx([0.1, 0.2], abs=1e-9)

@@ -186,3 +186,36 @@ def test_overflowing_parts_fill_few_plates_inside_and_apart():
         assert gap.min() >= spacing - 1e-9
     trimesh_once = plates_with(lambda e, p, s: packing.rectangles(e, size=p, spacing=s / 2, rotate=True, iterations=1))
     assert len(placed) <= len(trimesh_once)
+
+
+def test_step_pictures_show_the_pieces_in_place_grey_and_the_block_added_in_its_colour(tmp_path):
+    from volpuzzle.preview import render_steps
+
+    a = trimesh.creation.box([10, 10, 10])
+    b = trimesh.creation.box([10, 10, 10]).apply_translation([10, 0, 0])
+    colors = np.array([[220, 40, 40], [40, 40, 220]], np.uint8)
+    steps = [{"kind": "place", "piece": "a", "pieces": ["a"], "direction": None},
+             {"kind": "join", "piece": "b", "pieces": ["b"], "direction": [0.0, 0.0, -1.0]}]
+    files = render_steps(tmp_path, [a, b], ["a", "b"], colors, steps)
+    assert files == ["step-01.png", "step-02.png"]
+    first, second = (np.asarray(Image.open(tmp_path / f).convert("RGB")).astype(int) for f in files)
+    assert first.shape == (270, 360, 3)
+    first, second = first[25:], second[25:]  # below the title, whose letters are grey at their edges
+
+    def red(px):
+        return ((px[..., 0] > px[..., 2] + 60) & (px[..., 0] > px[..., 1] + 60)).sum()
+
+    def blue(px):
+        return ((px[..., 2] > px[..., 0] + 60) & (px[..., 2] > px[..., 1] + 60)).sum()
+
+    def grey(px):
+        return ((np.ptp(px, axis=2) < 4) & (px[..., 0] > 60) & (px[..., 0] < 250)).sum()
+
+    assert red(first) > 500 and blue(first) == 0 and grey(first) < 50  # the first piece alone, in its colour
+    assert blue(second) > 500 and red(second) == 0 and grey(second) > 500  # then it is in place, grey
+    # b slides down onto its place, so it is drawn back up: above a's grey (beside it when in place, and a shade
+    # lower on the screen, since +x runs slightly down)
+    rows = np.arange(second.shape[0])
+    b_rows = rows[(second[..., 2] > second[..., 0] + 60).any(axis=1)]
+    g = (np.ptp(second, axis=2) < 4) & (second[..., 0] > 60) & (second[..., 0] < 250)
+    assert b_rows.mean() < rows[g.any(axis=1)].mean() - 20

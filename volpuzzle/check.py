@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import math
 import time
-import weakref
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,31 +17,12 @@ import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
 from .geometry import is_ok
+from .geometry import memo as _memo
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
-           "check_joint_graph", "check_printability", "bed_contact_problem", "pin_fit", "fit_line"]
-
-# id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
-# (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
-# assembly replay), and a conversion or a closedness test costs milliseconds per piece.
-_MEMO = {}
-
-
-def _memo(mesh, what, make):
-    """make(), computed once per mesh object and kind of result while the mesh's content stays the same (a
-    trimesh hashes its arrays and notices its own edits; other objects are not remembered)."""
-    if not isinstance(mesh, trimesh.Trimesh):
-        return make()
-    h = hash(mesh)
-    key = id(mesh)
-    entry = _MEMO.get(key)
-    if entry is None or entry[0]() is not mesh or entry[1] != h:
-        entry = (weakref.ref(mesh, lambda _, key=key: _MEMO.pop(key, None)), h, {})
-        _MEMO[key] = entry
-    if what not in entry[2]:
-        entry[2][what] = make()
-    return entry[2][what]
+           "check_joint_graph", "check_printability", "piece_bed_contact", "bed_contact_problem", "pin_fit",
+           "fit_line"]
 
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -611,10 +591,18 @@ def fit_line(fit):
             f"{fit['face_clearance_mm']:g} mm")
 
 
-def _mesh_contact(mesh, transform):
+def piece_bed_contact(mesh, transform, pid="piece"):
+    """layout.bed_contact of a piece mesh placed by transform (4, 4), from its piece_solid; remembered per mesh and
+    transform, since the build's report entry and its printability check measure the very same placement."""
     from .layout import bed_contact
 
-    return bed_contact(mesh.vertices, mesh.faces, transform)
+    transform = np.asarray(transform, float)
+
+    def make():
+        solid = piece_solid(mesh, pid)
+        return bed_contact(mesh.vertices, mesh.faces, transform, solid=None if isinstance(solid, str) else solid)
+
+    return _memo(mesh, ("bed_contact", transform.tobytes()), make)
 
 
 def bed_contact_problem(under) -> str:
@@ -639,7 +627,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
             warnings.append(f"piece {pid}: report.json gives no print orientation; its bed contact was not checked")
             continue
         try:
-            contact[pid] = round(_mesh_contact(mesh, np.asarray(transform, float)), 2)
+            contact[pid] = round(piece_bed_contact(mesh, transform, pid), 2)
         except GeometryError as e:
             failures.append(f"piece {pid}: bed contact not measured ({e})")
             continue
@@ -710,13 +698,15 @@ def _face_gaps(meshes, face_clearance, shared=None):
     The median is over the first piece's vertices that have a vertex of the other within 3 clearances, each to the
     nearest such vertex: both sides of a cut face share one triangulation, each set back by half the clearance, so
     matching vertices sit one clearance apart, and 0 where the faces close. The smallest gap is the engine's, over
-    the whole surfaces."""
+    the whole surfaces, up to the first pair that touches (0): after it, the closest vertices (an upper bound), since
+    what is used of the smallest gaps is their least and the first pair with it, which no later pair can change."""
     from scipy.spatial import cKDTree
 
     ids = sorted(meshes)
     reach = 3.0 * face_clearance
     bounds = np.array([meshes[i].bounds for i in ids]) if ids else np.zeros((0, 2, 3))
     out = []
+    touching = False
     for i in range(len(ids)):
         for k in range(i + 1, len(ids)):
             lo = np.maximum(bounds[i, 0], bounds[k, 0]) - reach
@@ -728,7 +718,12 @@ def _face_gaps(meshes, face_clearance, shared=None):
             dist = dist[np.isfinite(dist)]
             if len(dist) < 8:
                 continue  # the pieces do not share a face
-            a, b = piece_solid(meshes[ids[i]], ids[i]), piece_solid(meshes[ids[k]], ids[k])
-            smallest = float(a.min_gap(b, reach)) if not (isinstance(a, str) or isinstance(b, str)) else float("nan")
+            if touching:  # the engine's gap costs a Boolean and a search (~10 ms a pair)
+                smallest = float(dist.min())
+            else:
+                a, b = piece_solid(meshes[ids[i]], ids[i]), piece_solid(meshes[ids[k]], ids[k])
+                smallest = (float(a.min_gap(b, reach)) if not (isinstance(a, str) or isinstance(b, str))
+                            else float("nan"))
+                touching = smallest == 0.0
             out.append((ids[i], ids[k], float(np.median(dist)), smallest))
     return out

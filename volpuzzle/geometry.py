@@ -4,6 +4,8 @@ manifold3d reports failure through `status()` instead of raising, and an empty r
 operation; every helper here checks both and raises GeometryError naming the piece (`what`).
 """
 
+import weakref
+
 import manifold3d
 import numpy as np
 import trimesh
@@ -12,6 +14,29 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import GeometryError
+
+# id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
+# (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
+# assembly replay; drawn in the preview and again in the step pictures), and a conversion or a closedness test costs
+# milliseconds per piece.
+_MEMO = {}
+
+
+def memo(mesh, what, make):
+    """make(), computed once per mesh object and kind of result while the mesh's content stays the same (a
+    trimesh hashes its arrays and notices its own edits; other objects are not remembered)."""
+    if not isinstance(mesh, trimesh.Trimesh):
+        return make()
+    h = hash(mesh)
+    key = id(mesh)
+    entry = _MEMO.get(key)
+    if entry is None or entry[0]() is not mesh or entry[1] != h:
+        entry = (weakref.ref(mesh, lambda _, key=key: _MEMO.pop(key, None)), h, {})
+        _MEMO[key] = entry
+    if what not in entry[2]:
+        entry[2][what] = make()
+    return entry[2][what]
+
 
 _OPS = {"union": lambda a, b: a + b, "difference": lambda a, b: a - b, "intersection": lambda a, b: a ^ b}
 
@@ -60,6 +85,12 @@ def to_trimesh(m):
 def from_trimesh(mesh, what):
     """trimesh.Trimesh -> Manifold, with status checks."""
     return manifold_from_mesh(mesh.vertices, mesh.faces, what)
+
+
+def solid_of(mesh, what):
+    """from_trimesh(mesh, what), made once per mesh object while its content stays the same (memo): stages that
+    read the same piece share its Manifold, which no operation changes in place."""
+    return memo(mesh, "solid_keep_faces", lambda: from_trimesh(mesh, what))
 
 
 def boolean(a, b, op, what):

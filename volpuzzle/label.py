@@ -831,7 +831,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None):
     None}, mm^3 removed)"""
     import dataclasses
 
-    from .geometry import from_trimesh, to_trimesh
+    from .geometry import solid_of, to_trimesh
 
     poses = poses or {}
 
@@ -840,7 +840,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None):
         # the piece id, else its number in the piece list (report.md gives the key)
         texts = (p.id, str(k + 1))
         try:
-            body, site, note = label_piece(from_trimesh(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+            body, site, note = label_piece(solid_of(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
                                            what=p.id, texts=texts, avoid=None if pose is None else pose.down)
         except GeometryError as e:
             # A label is a convenience: a piece too thin to take the groove keeps its material and says why.

@@ -176,27 +176,31 @@ def print_orientation(mesh, pin_directions=(), hole_openings=()):
     return _orient(mesh, pin_directions, hole_openings)[0]
 
 
-def bed_contact(vertices, faces, transform=None):
+def bed_contact(vertices, faces, transform=None, solid=None):
     """mm^2 of the mesh on the bed after `transform` (4, 4): its section FIRST_SLICE_MM above its lowest point, where
-    the slicer cuts the first layer."""
-    from .geometry import manifold_from_mesh
+    the slicer cuts the first layer. solid: the mesh's own Manifold (untransformed), when the caller has one:
+    building it is most of the cost."""
+    from .geometry import check_status, manifold_from_mesh
 
     v = np.asarray(vertices, float)
     if transform is not None:
         v = v @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
-    solid = manifold_from_mesh(v, faces, "piece on the bed", keep_faces=False)
+    if solid is None:
+        solid = manifold_from_mesh(v, faces, "piece on the bed", keep_faces=False)
+    elif transform is not None:
+        solid = check_status(solid.transform(np.asarray(transform, float)[:3, :]), "piece on the bed", "turning it")
     return float(solid.slice(float(v[:, 2].min()) + FIRST_SLICE_MM).area())
 
 
 def plan_pose(mesh, pin_directions=(), hole_openings=()):
     """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it)."""
-    from .geometry import from_trimesh
+    from .geometry import solid_of
 
     (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
     rot, hull_points = _orient(mesh, down=down)
     footprint = _hull_area(trimesh.transform_points(hull_points, rot)[:, :2])
     target = max(BASE_TARGET[0], BASE_TARGET[1] * footprint)
-    solid = from_trimesh(mesh, "piece").transform(rot[:3, :])
+    solid = solid_of(mesh, "piece").transform(rot[:3, :])  # the label stage engraves the same solid
     lowest = float(solid.bounding_box()[2])
     depth, area = 0.0, float(solid.slice(lowest + FIRST_SLICE_MM).area())
     if area < target:
@@ -445,7 +449,10 @@ def print_entry(piece, pose, placement):
         return None
     entry = pose.to_report()
     entry["plate_transform"] = np.round(placement.transform, 6).tolist()
-    entry["bed_contact_mm2"] = round(bed_contact(piece.mesh.vertices, piece.mesh.faces, placement.transform), 2)
+    from .check import piece_bed_contact
+
+    # on the transform as stored, so that the printability check measures this very placement (once)
+    entry["bed_contact_mm2"] = round(piece_bed_contact(piece.mesh, entry["plate_transform"], piece.id), 2)
     return entry
 
 

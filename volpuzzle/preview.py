@@ -1,28 +1,37 @@
 """preview.png: the assembled puzzle, an exploded view along the assembly plan and the first build plate, shaded.
 
-Drawn with a depth buffer of our own (vectorised numpy, parallel projection): each piece is simplified once, its
-triangles facing away from the eye are dropped (pieces are closed), and every triangle is rasterised into fragments
-at twice the size; per pixel the nearest fragment wins, then the picture is halved for smooth edges. Pieces get a
-dark outline where a pixel's neighbour shows another piece, so seams and pins read at a glance. Painting triangles
-far to near instead (the painter's algorithm) let long cut faces poke through the pieces in front of them.
+Drawn with a depth buffer of our own (parallel projection, a compiled scanline loop): the pieces are drawn as they
+are unless there are very many triangles (then each is simplified once), their triangles facing away from the eye
+are dropped (pieces are closed), and every triangle is rasterised into fragments at twice the size; per pixel the
+nearest fragment wins, then the picture is halved for smooth edges. Pieces get a dark outline where a pixel's
+neighbour shows another piece, so seams and pins read at a glance. Painting triangles far to near instead (the
+painter's algorithm) let long cut faces poke through the pieces in front of them.
 """
 
 import numpy as np
+from numba import njit
 
 # The eye: 28 degrees above the horizon, 60 degrees clockwise from the x axis (matplotlib's elev=28, azim=-60).
 ELEV, AZIM = np.radians(28.0), np.radians(-60.0)
 LIGHT = np.array([0.35, -0.5, 0.8]) / np.linalg.norm([0.35, -0.5, 0.8])
 SUPERSAMPLE = 2
-_FRAGMENTS = 4_000_000  # fragments rasterised at once (each costs ~60 bytes across the temporary arrays)
 _OUTLINE = 0.45  # brightness kept on a piece's outline
+_PREVIEW_TRIANGLES = 600_000  # below this in all, the preview draws the pieces as they are (a view is ~100 B each)
 
 
-def _simplified(mesh, faces=1500, colors=None):
-    """(vertices (n, 3), faces (m, 3), per-triangle colours (m, 3) or None) of a mesh simplified to about `faces`
-    triangles; per-triangle colours follow the nearest original triangle."""
+def _simplified(mesh, faces=1500):
+    """(vertices (n, 3), faces (m, 3), nearest original triangle (m,) or None) of a mesh simplified to about `faces`
+    triangles; None when the mesh is drawn as it is. Remembered per mesh: the preview and the step pictures ask
+    for the same pieces."""
+    from .geometry import memo
+
+    return memo(mesh, ("preview", int(faces)), lambda: _simplify(mesh, faces))
+
+
+def _simplify(mesh, faces):
     v0, f0 = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     if len(f0) <= faces:
-        return v0, f0, colors
+        return v0, f0, None
     try:
         import fast_simplification
 
@@ -30,15 +39,21 @@ def _simplified(mesh, faces=1500, colors=None):
                                             target_reduction=1.0 - faces / len(f0))
         v, f = np.asarray(v, float), np.asarray(f)
         if len(f):
-            if colors is not None:
-                from scipy.spatial import cKDTree
+            from scipy.spatial import cKDTree
 
-                _, near = cKDTree(v0[f0].mean(axis=1)).query(v[f].mean(axis=1))
-                colors = colors[near]
-            return v, f, colors
+            # per-triangle colours follow the nearest original triangle
+            _, near = cKDTree(v0[f0].mean(axis=1)).query(v[f].mean(axis=1))
+            return v, f, near
     except Exception:  # noqa: BLE001 - a preview falls back to the full mesh rather than failing the build
         pass
-    return v0, f0, colors
+    return v0, f0, None
+
+
+def _face_cap(meshes, budget, least):
+    """Triangles a piece keeps in a picture: the pieces as they are while all of them fit in `budget` triangles
+    (simplifying costs more than drawing them), else at most `least` each (a sketch: a large puzzle's pieces are
+    a few pixels wide)."""
+    return max(int(least), int(budget) // max(len(meshes), 1))
 
 
 def _view_axes():
@@ -48,85 +63,118 @@ def _view_axes():
     return right, np.cross(eye, right), eye
 
 
-def _visible(parts, offsets):
-    """Triangles facing the eye of every part, moved by its offset -> (t, 3, 3) corners, (t, 3) colours in 0..1,
-    (t,) part index."""
+def _facing(parts):
+    """Triangles of every part (vertices, faces, colours) that face the eye -> list of ((t, 3, 3) corners, (t, 3)
+    colours in 0..1 shaded by the light)."""
     _, _, eye = _view_axes()
-    tris, cols, owner = [], [], []
-    for k, ((v, f, rgb), off) in enumerate(zip(parts, offsets, strict=True)):
-        t = v[f] + off
+    out = []
+    for v, f, rgb in parts:
+        t = v[f]
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         front = n @ eye > 0  # closed pieces: the back faces are hidden behind the front ones anyway
         shade = 0.35 + 0.65 * np.clip(n[front] @ LIGHT, 0, 1)
         base = np.asarray(rgb, float).reshape(-1, 3)
         base = base[front] if len(base) == len(f) else np.broadcast_to(base[:1], (int(front.sum()), 3))
-        tris.append(t[front])
-        cols.append(np.clip(base / 255.0 * shade[:, None], 0, 1))
-        owner.append(np.full(int(front.sum()), k))
-    if not tris:
+        out.append((t[front], np.clip(base / 255.0 * shade[:, None], 0, 1)))
+    return out
+
+
+def _visible(facing, offsets):
+    """The facing triangles (_facing) of every part, moved by its offset -> (t, 3, 3) corners, (t, 3) colours,
+    (t,) part index."""
+    if not facing:
         return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, int)
-    return np.concatenate(tris), np.concatenate(cols), np.concatenate(owner)
+    tris = np.concatenate([t + off for (t, _), off in zip(facing, offsets, strict=True)])
+    cols = np.concatenate([c for _, c in facing])
+    owner = np.repeat(np.arange(len(facing)), [len(t) for t, _ in facing])
+    return tris, cols, owner
 
 
 def rasterize(px, py, depth, w, h):
     """Depth buffer: triangles with pixel corners px, py (t, 3) and depth (t, 3) (larger is nearer the eye) on a w x h
     grid -> (h, w) index of the nearest triangle at each pixel centre, -1 where none.
 
-    Scanlines: every (triangle, pixel row) pair gets the span of pixel centres inside the triangle from its edges,
-    so only covered pixels become fragments; a fragment's depth comes from its triangle's plane. Each depth
-    (quantised to 2^-(62 - b) of the depth range) and triangle index (b bits) share one int64 key, so one
-    np.maximum.at per batch keeps the nearest fragment and says whose it is."""
-    keys = np.full(w * h, -1, dtype=np.int64)
-    px, py, depth = (np.asarray(a, float) for a in (px, py, depth))
-    e1x, e1y, e2x, e2y = px[:, 1] - px[:, 0], py[:, 1] - py[:, 0], px[:, 2] - px[:, 0], py[:, 2] - py[:, 0]
-    det = e1x * e2y - e1y * e2x
-    keep = np.flatnonzero(np.abs(det) > 1e-12)
-    if not len(keep):
-        return keys.reshape(h, w)
-    bits = max(1, int(len(px) - 1).bit_length())
-    zlo, zhi = float(depth.min()), float(depth.max())
-    zscale = (2.0 ** (62 - bits) - 1) / max(zhi - zlo, 1e-12)
-    dz1, dz2 = depth[:, 1] - depth[:, 0], depth[:, 2] - depth[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    Scanlines: every (triangle, pixel row) pair gets the span of pixel centres inside the triangle from its edges;
+    a fragment's depth comes from its triangle's plane. Each depth (quantised to 2^-(62 - b) of the depth range)
+    and triangle index (b bits) share one int64 key, and the largest key per pixel is the nearest fragment and
+    says whose it is (ties go to the later triangle, whatever the order the fragments come in)."""
+    px, py, depth = (np.ascontiguousarray(a, dtype=float).reshape(-1, 3) for a in (px, py, depth))
+    t = len(px)
+    # the general scan with nothing moved: pixel = 0 + (x + 0) * 1 exactly, and y enters negated
+    return _depth_buffer(px, -py, depth, np.zeros(t, np.int64), np.zeros((1, 3)), np.ones(1, np.bool_),
+                         (0.0, 0.0, 1.0), (float(depth.min()), float(depth.max())) if t else (0.0, 0.0), w, h)
+
+
+def _depth_buffer(sx, sy, sz, part, shift, show, frame, zrange, w, h):
+    """rasterize for screen coordinates sx, sy, sz (t, 3) (right, up, toward the eye) of triangles of parts
+    part (t,), each part moved by shift (parts, 3) on the screen and drawn where show (parts,) is set; frame
+    (cx, cy, scale) puts x at cx + x * scale pixels and y at cy - y * scale; zrange (lo, hi) bounds the depths of
+    the drawn triangles. -> (h, w) triangle index, -1 where none."""
+    keys = np.full(int(w) * int(h), -1, dtype=np.int64)
+    bits = max(1, int(len(sx) - 1).bit_length())
+    if len(sx):
+        zlo, zhi = float(zrange[0]), float(zrange[1])
+        zscale = (2.0 ** (62 - bits) - 1) / max(zhi - zlo, 1e-12)
+        _scan(sx, sy, sz, part, np.ascontiguousarray(shift, dtype=float), show, float(frame[0]), float(frame[1]),
+              float(frame[2]), int(w), int(h), zlo, zscale, bits, keys)
+    return np.where(keys >= 0, keys & ((1 << bits) - 1), -1).reshape(int(h), int(w))
+
+
+@njit(cache=True, nogil=True)
+def _scan(sx, sy, sz, part, shift, show, cx, cy, scale, w, h, zlo, zscale, bits, keys):
+    # Compiled: a picture is millions of fragments, and numpy's version spent ~1 s a preview building (triangle,
+    # row) and fragment arrays and scattering them with np.maximum.at, and the step pictures as much again in
+    # moving and projecting the pieces for each step.
+    for t in range(sx.shape[0]):
+        p = part[t]
+        if not show[p]:
+            continue
+        x0 = cx + (sx[t, 0] + shift[p, 0]) * scale
+        x1 = cx + (sx[t, 1] + shift[p, 0]) * scale
+        x2 = cx + (sx[t, 2] + shift[p, 0]) * scale
+        y0 = cy - (sy[t, 0] + shift[p, 1]) * scale
+        y1 = cy - (sy[t, 1] + shift[p, 1]) * scale
+        y2 = cy - (sy[t, 2] + shift[p, 1]) * scale
+        d0 = sz[t, 0] + shift[p, 2]
+        dz1 = sz[t, 1] + shift[p, 2] - d0
+        dz2 = sz[t, 2] + shift[p, 2] - d0
+        e1x, e1y, e2x, e2y = x1 - x0, y1 - y0, x2 - x0, y2 - y0
+        det = e1x * e2y - e1y * e2x
+        if not abs(det) > 1e-12:
+            continue
         dzdx = (dz1 * e2y - dz2 * e1y) / det
         dzdy = (dz2 * e1x - dz1 * e2x) / det
-    # pixel rows whose centre (j + 0.5) lies within each triangle's height
-    r0 = np.clip(np.ceil(py.min(axis=1) - 0.5), 0, h).astype(np.int64)[keep]
-    r1 = np.clip(np.floor(py.max(axis=1) - 0.5), -1, h - 1).astype(np.int64)[keep]
-    rows = np.maximum(r1 - r0 + 1, 0)
-    t = np.repeat(keep, rows)
-    yc = (np.repeat(r0, rows) + np.arange(len(t)) - np.repeat(np.cumsum(rows) - rows, rows)).astype(float) + 0.5
-    xl, xr = np.full(len(t), np.inf), np.full(len(t), -np.inf)
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        yi, yj, xi, xj = py[t, i], py[t, j], px[t, i], px[t, j]
-        cross = (np.minimum(yi, yj) <= yc) & (yc <= np.maximum(yi, yj)) & (yi != yj)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = xi + (yc - yi) * (xj - xi) / (yj - yi)
-        xl = np.where(cross, np.minimum(xl, x), xl)
-        xr = np.where(cross, np.maximum(xr, x), xr)
-    c0 = np.clip(np.ceil(xl - 0.5 - 1e-9), 0, w).astype(np.int64)
-    c1 = np.clip(np.floor(xr - 0.5 + 1e-9), -1, w - 1).astype(np.int64)
-    span = np.maximum(c1 - c0 + 1, 0)
-    ends = np.cumsum(span)
-    start = 0
-    while start < len(t):
-        # spans whose fragments fit in one batch (at least one span)
-        base = ends[start - 1] if start else 0
-        stop = max(start + 1, int(np.searchsorted(ends, base + _FRAGMENTS, side="right")))
-        n = span[start:stop]
-        tt = np.repeat(t[start:stop], n)
-        gy = np.repeat(yc[start:stop], n)
-        gx = (np.repeat(c0[start:stop], n) + np.arange(len(tt)) - np.repeat(np.cumsum(n) - n, n)).astype(float) + 0.5
-        z = depth[tt, 0] + (gx - px[tt, 0]) * dzdx[tt] + (gy - py[tt, 0]) * dzdy[tt]
-        key = (np.clip((z - zlo) * zscale, 0, None).astype(np.int64) << bits) | tt
-        np.maximum.at(keys, (gy - 0.5).astype(np.int64) * w + (gx - 0.5).astype(np.int64), key)
-        start = stop
-    return np.where(keys >= 0, keys & ((1 << bits) - 1), -1).reshape(h, w)
+        # pixel rows whose centre (j + 0.5) lies within the triangle's height
+        r0 = max(0.0, min(float(h), np.ceil(min(y0, y1, y2) - 0.5)))
+        r1 = max(-1.0, min(float(h - 1), np.floor(max(y0, y1, y2) - 0.5)))
+        for r in range(int(r0), int(r1) + 1):
+            yc = r + 0.5
+            xl, xr = np.inf, -np.inf
+            if min(y0, y1) <= yc <= max(y0, y1) and y0 != y1:
+                x = x0 + (yc - y0) * (x1 - x0) / (y1 - y0)
+                xl, xr = min(xl, x), max(xr, x)
+            if min(y1, y2) <= yc <= max(y1, y2) and y1 != y2:
+                x = x1 + (yc - y1) * (x2 - x1) / (y2 - y1)
+                xl, xr = min(xl, x), max(xr, x)
+            if min(y2, y0) <= yc <= max(y2, y0) and y2 != y0:
+                x = x2 + (yc - y2) * (x0 - x2) / (y0 - y2)
+                xl, xr = min(xl, x), max(xr, x)
+            if not xl <= xr:
+                continue
+            c0 = int(max(0.0, min(float(w), np.ceil(xl - 0.5 - 1e-9))))
+            c1 = int(max(-1.0, min(float(w - 1), np.floor(xr - 0.5 + 1e-9))))
+            row = r * w
+            for c in range(c0, c1 + 1):
+                z = d0 + (c + 0.5 - x0) * dzdx + (yc - y0) * dzdy
+                q = (z - zlo) * zscale
+                key = (np.int64(q if q > 0.0 else 0.0) << bits) | t
+                if key > keys[row + c]:
+                    keys[row + c] = key
 
 
 def _paint(img, tris, cols, owner, box):
-    """Draw the triangles into img (H, W, 3) float, the whole set scaled to fit box (x0, y0, x1, y1) in pixels."""
+    """Draw the triangles into img (H, W, 3) uint8, the whole set scaled to fit box (x0, y0, x1, y1) in pixels."""
     if not len(tris):
         return
     right, up, eye = _view_axes()
@@ -142,16 +190,29 @@ def _paint(img, tris, cols, owner, box):
     bx0, by0 = int(max(0, np.floor(px.min()) - 1)), int(max(0, np.floor(py.min()) - 1))
     bx1, by1 = int(min(W, np.ceil(px.max()) + 2)), int(min(H, np.ceil(py.max()) + 2))
     ibuf = rasterize(px - bx0, py - by0, tris @ eye, bx1 - bx0, by1 - by0)
-    hit = ibuf >= 0
-    region = img[by0:by1, bx0:bx1]
-    region[hit] = cols[ibuf[hit]]
-    # outlines where the neighbouring pixel shows another part, or nothing
-    part = np.where(hit, owner[np.maximum(ibuf, 0)], -1)
-    edge = np.zeros_like(hit)
-    edge[:, 1:] |= part[:, 1:] != part[:, :-1]
-    edge[1:, :] |= part[1:, :] != part[:-1, :]
-    edge &= hit
-    region[edge] *= _OUTLINE
+    _shade(ibuf, cols[None], np.zeros(int(owner.max()) + 1, np.int64), owner, _OUTLINE, img, by0, bx0)
+
+
+@njit(cache=True, nogil=True)
+def _shade(ibuf, cols, which, owner, outline, img, top, left):
+    """Colour the pixels of img (H, W, 3) uint8 that the depth buffer ibuf (h, w) covers, its corner at pixel (top,
+    left) of img: triangle t of part owner[t] takes cols[which[owner[t]], t] (colours (k, t, 3) in 0..1), times
+    `outline` where the pixel to the left or above shows another part or nothing, so that seams and pins read at a
+    glance."""
+    h, w = ibuf.shape
+    for r in range(h):
+        for c in range(w):
+            t = ibuf[r, c]
+            if t < 0:
+                continue
+            p = owner[t]
+            f = 1.0
+            if (c > 0 and (ibuf[r, c - 1] < 0 or owner[ibuf[r, c - 1]] != p)) or \
+                    (r > 0 and (ibuf[r - 1, c] < 0 or owner[ibuf[r - 1, c]] != p)):
+                f = outline
+            for k in range(3):
+                v = cols[which[p], t, k] * f
+                img[top + r, left + c, k] = np.uint8(np.rint(min(max(v, 0.0), 1.0) * 255.0))
 
 
 def _font(size):
@@ -206,29 +267,31 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
     width = size[0] if panels == 2 else size[0] * 3 // 2
     w, h = width * k, size[1] * k
     colors = list(colors)
-    parts = [_part(m, c) for m, c in zip(meshes, colors, strict=True)]
+    cap = _face_cap(meshes, _PREVIEW_TRIANGLES, 1500)
+    parts = [_part(m, c, cap) for m, c in zip(meshes, colors, strict=True)]
     exploded = _radial(meshes, explode) if offsets is None else np.asarray(offsets, float)
-    views = [(parts, np.zeros((len(parts), 3)), "assembled"), (parts, exploded, "exploded")]
+    facing = _facing(parts)  # the assembled and the exploded views differ by offsets only
+    views = [(facing, np.zeros((len(parts), 3)), "assembled"), (facing, exploded, "exploded")]
     if plate is not None:
         on_plate, (pw, pd) = plate
         import trimesh
 
         bed = trimesh.creation.box([pw, pd, 1.0])
         bed.apply_translation([pw / 2, pd / 2, -0.5])
-        bed_parts = [_part(bed, (225, 225, 225))]
+        bed_parts = [_part(bed, (225, 225, 225), cap)]
         for i, m in on_plate:  # the simplified piece, moved: simplifying once serves every view
             v, f, c = parts[i]
             m = np.asarray(m, float)
             bed_parts.append((v @ m[:3, :3].T + m[:3, 3], f, c))
-        views.append((bed_parts, np.zeros((len(bed_parts), 3)), "plate 1"))
-    img = np.ones((h, w, 3))
+        views.append((_facing(bed_parts), np.zeros((len(bed_parts), 3)), "plate 1"))
+    img = np.full((h, w, 3), 255, np.uint8)
     top = int(0.09 * h)
     margin = int(0.06 * w / panels)
     for i, (ps, offs, _) in enumerate(views):
         x0 = i * w // panels
         tris, cols, owner = _visible(ps, offs)
         _paint(img, tris, cols, owner, (x0 + margin, top + margin, x0 + w // panels - margin, h - margin))
-    pil = Image.fromarray(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+    pil = Image.fromarray(img)
     draw = ImageDraw.Draw(pil)
     for i, (_, _, label) in enumerate(views):
         _text(draw, (i + 0.5) * w / panels, int(0.05 * h), label, 19 * k)
@@ -238,16 +301,19 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
     pil.reduce(k).save(path, format="PNG", compress_level=1)
 
 
-def _part(mesh, rgb):
-    """(vertices, faces, colours) of a mesh ready to draw: one (3,) colour or (m, 3) per triangle."""
+def _part(mesh, rgb, faces):
+    """(vertices, faces, colours) of a mesh ready to draw, with at most about `faces` triangles: one (3,) colour or
+    (m, 3) per triangle."""
     rgb = np.asarray(rgb)
-    per_triangle = rgb.ndim == 2 and len(rgb) == len(mesh.faces)
-    v, f, c = _simplified(mesh, colors=rgb if per_triangle else None)
-    return v, f, (c if per_triangle else rgb.reshape(3))
+    v, f, near = _simplified(mesh, faces)
+    if rgb.ndim == 2 and len(rgb) == len(mesh.faces):
+        return v, f, (rgb if near is None else rgb[near])
+    return v, f, rgb.reshape(3)
 
 
 STEP_SIZE = (360, 270)  # pixels of one assembly step's picture
-_STEP_FACES = 300  # triangles per piece in step pictures: a sketch, many of them
+_STEP_FACES = 300  # triangles per piece in step pictures of a large puzzle: a sketch, many of them
+_STEP_TRIANGLES = 200_000  # below this in all, step pictures draw the pieces as they are
 
 
 def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
@@ -262,47 +328,51 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     where = {n: i for i, n in enumerate(names)}
-    parts = [_simplified(m, faces=_STEP_FACES)[:2] for m in meshes]
+    cap = _face_cap(meshes, _STEP_TRIANGLES, _STEP_FACES)
+    parts = [_simplified(m, cap)[:2] for m in meshes]
     right, up, eye = _view_axes()
     every = np.concatenate([v for v, _ in parts])
     reach = 0.6 * float(np.median([np.linalg.norm(np.ptp(v, axis=0)) for v, _ in parts]))
     w, h = size
     k = 1  # sketches: many of them, no supersampling
-    grey = np.full((len(parts), 3), 215, np.uint8)
-    seen_grey = [_visible([(*parts[i], grey[i])], [np.zeros(3)]) for i in range(len(parts))]
-    seen_own = [_visible([(*parts[i], colors[i])], [np.zeros(3)]) for i in range(len(parts))]
+    # The view never changes, so each piece's triangles facing the eye are found and put on the screen (right, up,
+    # depth) once; a step only shows some of them and moves the block it adds.
+    facing = _facing([(v, f, (255, 255, 255)) for v, f in parts])
+    axes = np.stack([right, up, eye], axis=1)
+    screen = np.concatenate([t for t, _ in facing]).reshape(-1, 3, 3) @ axes  # (t, 3, 3)
+    sx, sy, sz = (np.ascontiguousarray(screen[..., a]) for a in range(3))
+    owner = np.repeat(np.arange(len(parts)), [len(t) for t, _ in facing])
+    light = np.concatenate([c for _, c in facing])  # the shade alone, on white
+    cols = np.stack([light * (215 / 255.0), light * (np.asarray(colors, float)[owner] / 255.0)])  # grey, own
+    near, far = np.full(len(parts), np.inf), np.full(len(parts), -np.inf)  # each piece's depth range
+    np.minimum.at(near, owner, sz.min(axis=1))
+    np.maximum.at(far, owner, sz.max(axis=1))
+    every_x, every_y = every @ right, every @ up
     files, placed = [], set()
     for n, step in enumerate(steps, start=1):
         moving = [where[p] for p in (step.get("pieces") or [step.get("piece")]) if p in where]
         d = step.get("direction")
         back = -reach * np.asarray(d, float) if d is not None else np.zeros(3)
-        # the view never changes, so each piece's triangles facing the eye are found once
-        shown = [(seen_grey[i], np.zeros(3)) for i in sorted(placed - set(moving))]
-        shown += [(seen_own[i], back) for i in moving]
+        back_screen = back @ axes
+        shown = np.zeros(len(parts), np.bool_)
+        shown[sorted(placed | set(moving))] = True
+        shift = np.zeros((len(parts), 3))
+        shift[moving] = back_screen
+        which = np.zeros(len(parts), np.int64)  # grey for the pieces in place, their own colours for the block
+        which[moving] = 1
         # frame: the whole puzzle and the block drawn back, the same scale for every step
-        frame = np.concatenate([every, every + back])
-        x, y = frame @ right, frame @ up
+        x = np.concatenate([every_x, every_x + back_screen[0]])
+        y = np.concatenate([every_y, every_y + back_screen[1]])
         lo = np.array([x.min(), y.min()])
         span = np.maximum(np.array([x.max(), y.max()]) - lo, 1e-9)
         scale = min((w * k * 0.9) / span[0], (h * k * 0.82) / span[1])
-        img = np.ones((h * k, w * k, 3))
-        if shown:
-            tris = np.concatenate([t + off for (t, _, _), off in shown])
-            cols = np.concatenate([c for (_, c, _), _ in shown])
-            owner = np.repeat(np.arange(len(shown)), [len(t) for (t, _, _), _ in shown])
-        if shown and len(tris):
-            tx, ty = tris @ right, tris @ up
-            px = w * k / 2 + (tx - (lo[0] + span[0] / 2)) * scale
-            py = h * k * 0.54 - (ty - (lo[1] + span[1] / 2)) * scale
-            ibuf = rasterize(px, py, tris @ eye, w * k, h * k)
-            hit = ibuf >= 0
-            img[hit] = cols[ibuf[hit]]
-            part = np.where(hit, owner[np.maximum(ibuf, 0)], -1)
-            edge = np.zeros_like(hit)
-            edge[:, 1:] |= part[:, 1:] != part[:, :-1]
-            edge[1:, :] |= part[1:, :] != part[:-1, :]
-            img[edge & hit] *= _OUTLINE
-        pil = Image.fromarray(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+        img = np.full((h * k, w * k, 3), 255, np.uint8)
+        zr = ((near + shift[:, 2])[shown].min(initial=np.inf), (far + shift[:, 2])[shown].max(initial=-np.inf))
+        if zr[0] <= zr[1]:
+            frame = (w * k / 2 - (lo[0] + span[0] / 2) * scale, h * k * 0.54 + (lo[1] + span[1] / 2) * scale, scale)
+            ibuf = _depth_buffer(sx, sy, sz, owner, shift, shown, frame, zr, w * k, h * k)
+            _shade(ibuf, cols, which, owner, _OUTLINE, img, 0, 0)
+        pil = Image.fromarray(img)
         draw = ImageDraw.Draw(pil)
         if moving and d is not None:
             centre = np.mean([parts[i][0].mean(axis=0) for i in moving], axis=0)
