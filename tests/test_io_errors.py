@@ -459,6 +459,56 @@ def test_unreadable_3mf_file(tmp_path):
     _refused(read_3mf, _write(tmp_path, "bad.3mf", b"PK\x03\x04 not a zip"), r"not a readable 3MF file: ")
 
 
+_3MF_TYPES = ('<?xml version="1.0" encoding="UTF-8"?><Types xmlns="http://schemas.openxmlformats.org/package/2006/'
+              'content-types"><Default Extension="rels" ContentType="application/vnd.openxmlformats-package.'
+              'relationships+xml"/><Default Extension="model" ContentType="application/vnd.ms-package.'
+              '3dmanufacturing-3dmodel+xml"/></Types>')
+_3MF_RELS = ('<?xml version="1.0" encoding="UTF-8"?><Relationships xmlns="http://schemas.openxmlformats.org/package/'
+             '2006/relationships"><Relationship Target="/3D/3dmodel.model" Id="rel0" Type="http://schemas.microsoft.'
+             'com/3dmanufacturing/2013/01/3dmodel"/></Relationships>')
+_3MF_TETRA = ('<object id="1" type="model"><mesh><vertices><vertex x="0" y="0" z="0"/><vertex x="10" y="0" z="0"/>'
+              '<vertex x="0" y="10" z="0"/><vertex x="0" y="0" z="10"/></vertices><triangles>'
+              '<triangle v1="0" v2="2" v3="1"/><triangle v1="0" v2="1" v3="3"/><triangle v1="0" v2="3" v3="2"/>'
+              '<triangle v1="1" v2="2" v3="3"/></triangles></mesh></object>')
+
+
+def _3mf(tmp_path, name, resources=_3MF_TETRA, item='<item objectid="1"/>'):
+    """A 3MF package written by hand, so that it can hold what our writer never writes."""
+    import zipfile
+
+    path = tmp_path / name
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("[Content_Types].xml", _3MF_TYPES)
+        z.writestr("_rels/.rels", _3MF_RELS)
+        z.writestr("3D/3dmodel.model", '<?xml version="1.0" encoding="UTF-8"?><model unit="millimeter" '
+                   'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02"><resources>'
+                   f"{resources}</resources><build>{item}</build></model>")
+    return path
+
+
+def test_3mf_hand_made_tetrahedron_is_read(tmp_path):
+    from volpuzzle.io.threemf import read_3mf
+
+    ((_, v, f, _),) = read_3mf(_3mf(tmp_path, "ok.3mf"))
+    assert v.shape == (4, 3) and f.shape == (4, 3) and float(v.max()) == 10.0
+
+
+def test_3mf_build_item_of_components(tmp_path):
+    from volpuzzle.io.threemf import read_3mf
+
+    comp = _3MF_TETRA + '<object id="2" type="model"><components><component objectid="1"/></components></object>'
+    _refused(read_3mf, _3mf(tmp_path, "c.3mf", comp, '<item objectid="2"/>'),
+             r"build item 0 is not a mesh object \(components are not supported\)")
+
+
+def test_3mf_warning_is_an_error_in_strict_mode(tmp_path):
+    from volpuzzle.io.threemf import read_3mf
+
+    path = _3mf(tmp_path, "w.3mf", item='<item objectid="1" colour="red"/>')
+    _refused(read_3mf, path, r"not a readable 3MF file: .*Invalid Attribute")
+    assert len(read_3mf(path, strict=False)) == 1  # the same file is only warned about outside strict mode
+
+
 # --- writers: the 3MF writer and save_model refuse bad input with the file named ----------------------------------
 _TRI = ("t", np.eye(3), np.array([[0, 1, 2]]), (10, 20, 30), None)
 

@@ -168,9 +168,6 @@ def _trivar(path, node, label, dims=3):
         knots = [np.r_[np.zeros(n), np.ones(n)] for n in lengths]
 
     width = 4 if rational else 3
-    if len(pts) != count:
-        raise fail(path, f"{label}: control points", f"expected {' x '.join(map(str, lengths))} = {count} "
-                                                     f"points, got {len(pts)}")
     flat = np.empty((count, width))
     for i, (ln, body) in enumerate(pts):
         if len(body) != width:

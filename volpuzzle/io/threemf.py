@@ -317,26 +317,21 @@ def read_3mf(path, strict: bool = True, with_units: bool = False):
 
 
 def _open_model(w, path, strict):
-    """lib3mf's model of the file and its reader's warnings -> (model, [sentences]); ModelError when unreadable."""
+    """lib3mf's model of the file -> model; ModelError when unreadable. strict: lib3mf's strict mode, which raises
+    on what it would otherwise only warn about."""
     try:
         model = w.CreateModel()
         reader = model.QueryReader("3mf")
         reader.SetStrictModeActive(bool(strict))
         reader.ReadFromFile(str(path))
-        warnings = []
-        for i in range(reader.GetWarningCount()):
-            code, msg = reader.GetWarning(i)
-            warnings.append(f"{msg} (code {code})")
     except Exception as e:
         raise ModelError(f"{path}: not a readable 3MF file: {e}") from e
-    return model, warnings
+    return model
 
 
 def _read_model(path, strict, with_units):
     _, L, w = _lib()
-    model, warnings = _open_model(w, path, strict)
-    if strict and warnings:
-        raise ModelError(f"{path}: 3MF reader warnings in strict mode: {'; '.join(warnings)}")
+    model = _open_model(w, path, strict)
     out = []
     items = model.GetBuildItems()
     k = 0
@@ -367,7 +362,7 @@ def read_triangle_colors(path, strict: bool = True):
         raise ModelError(f"{path}: no such 3MF file")
     with _LOCK:
         _, L, w = _lib()
-        model, _ = _open_model(w, path, strict)
+        model = _open_model(w, path, strict)
         out = {}
         items = model.GetBuildItems()
         while items.MoveNext():
