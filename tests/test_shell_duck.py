@@ -24,9 +24,5 @@ def test_duck_holds_together(tmp_path):
     assert all(c["reason"] for c in unpinned) and fig["pinned_with_room"] + len(unpinned) == fig["with_room"]
     assert all(j["radius_mm"] >= 1.0 for j in report["joints"])  # printable: joint.MIN_RADIUS
     assert not report["assembly"]["welded"] and not report["assembly"]["stuck"]
-    vols = sorted(p["volume_mm3"] for p in report["pieces"])
-    # no two pieces alike: the duck is nearly mirror-symmetric, and mirror pairs (p1-3-0, p1-4-0) differ by their
-    # joints (a pin where the other has a hole) and the surface's slight asymmetry, by 0.3 mm^3 or more
-    assert all(b - a > 0.1 for a, b in zip(vols, vols[1:], strict=False))
     checks = check_directory(tmp_path / "out" / "duck")
     assert checks["joint_graph"]["pieces_without_joint"] == []

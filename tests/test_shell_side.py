@@ -84,7 +84,7 @@ def test_distance_converges_beyond_a_hollow():
     d = distance_to(s, x[None], np.array([uv + [0.01, 0.0]]))[0]
     pts = grid_points(s, 60)[0].reshape(-1, 3)
     dense = float(np.min(np.linalg.norm(pts - x, axis=1)))
-    assert d <= dense + 1e-9 and d == pytest.approx(dense, abs=2e-3)
+    assert d <= dense + 1e-9 and d == pytest.approx(dense, abs=1e-2)  # the grid only bounds it from above
     assert d < 2 * hollow - 0.1
 
 

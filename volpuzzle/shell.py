@@ -1,24 +1,28 @@
-"""`model.shell`: the trivariate between a NURBS surface and its inward offset (the paper's duck and Earth).
+"""`model.shell`: the trivariate between a NURBS surface and its offsets (the paper's duck and Earth).
 
-The surface S is scaled to mm first (units, then `size` on its bounding box), so the thickness t is millimetres of
-the printed object. The shell is ruled along w: w = 0 the inner surface, w = 1 the outer surface S, so w_max is
-the outside (where a texture goes).
+The surface S is scaled to mm first (units, then `size` on its bounding box, less a wall outside it), so the thickness
+t is millimetres of the printed object. `side` puts the wall inside S (inward, the default: S is the outside), outside
+it (outward: S is the inside), half each way (both), or a share s in [0, 1] of it outside: the walls are S - (1 - s) t n
+and S + s t n. The shell is ruled along w: w = 0 the inner wall, w = 1 the outer one, so w_max is the outside (where
+a texture goes).
 
-The true offset S - t n is not a NURBS in general. It is represented on S's own rational basis (same weights, same
-knots, refined): the inner control points are a least-squares fit to samples of the true offset, the knots halved
-until the largest deviation on a denser check grid is at most a quarter of output.tolerance (or four rounds are
-done). When the offset lies in that space (a sphere: the offset is S scaled about its centre) the fit is exact to
-round-off. Shifting S's control points along the normal, the simpler construction, is measured alongside and
-reported, and is orders of magnitude worse on a freeform surface.
+A true offset S + d n is not a NURBS in general. It is represented on S's own rational basis (same weights, same
+knots, refined): its control points are a least-squares fit to samples of the true offset, the knots halved (for
+both walls together) until the largest deviation on a denser check grid is at most a quarter of output.tolerance (or
+four rounds are done). When the offset lies in that space (a sphere: the offset is S scaled about its centre) the fit
+is exact to round-off. Shifting S's control points along the normal, the simpler construction, is measured alongside
+and reported, and is orders of magnitude worse on a freeform surface.
 
-A closed direction (first and last rows of control points equal) keeps its first and last inner rows tied, so the
-shell closes exactly; a collapsed row (a pole: every control point the same) stays collapsed on the inner surface.
-Where one direction is closed it becomes v and the other u, as in the sphere shell (u polar, v azimuth), and u is
-reversed when needed so that the shell is right-handed.
+A closed direction (first and last rows of control points equal) keeps its first and last rows tied, so the shell
+closes exactly; a collapsed row (a pole: every control point the same) stays collapsed on both walls. Where one
+direction is closed it becomes v and the other u, as in the sphere shell (u polar, v azimuth), and u is reversed when
+needed so that the shell is right-handed.
 
-An inward offset folds where t exceeds the radius of curvature of a part of S that bends round the inside (1 / the
-largest positive principal curvature with the outward normal): the Jacobian certificate of the shell refuses it, and
-the message names the place and the thickest shell that certifies.
+An inward wall folds where it is thicker than the radius of curvature of a part of S that bends round the inside (1 /
+the largest positive principal curvature with the outward normal: a ridge), an outward wall where it is thicker than
+the radius of a part that bends round the outside (a hollow, a crease): the Jacobian certificate of the shell refuses
+either, and the message names the place, the bend that limits it and the thickest shell with the same side that
+certifies.
 """
 
 from dataclasses import dataclass
@@ -308,7 +312,7 @@ def offset_surfaces(surf, inward, outward, target, max_rounds=_MAX_ROUNDS):
     err, surf, inner, outer, fit_in, fit_out = best  # refining past a feature the fit cannot follow can be worse
     fitted = [(name, t, e) for name, t, e in (("inner", inward, fit_in), ("outer", -outward, fit_out)) if t != 0.0]
     name, depth, (_, where) = max(fitted, key=lambda f: f[2][0])  # the worst fitted wall is the one reported
-    naive = max(offset_error(surf, _normal_shift(surf, t), t)[0] for _, t, _ in fitted)
+    naive = offset_error(surf, _normal_shift(surf, depth), depth)[0]  # of the reported wall: the comparison
     exact = err <= 1e-6 * _size(surf)  # round-off, and the normals taken a hair off the poles
     info = {"method": "exact (the offset lies in the surface's rational space)" if exact else
             "least-squares fit on the surface's rational basis, knots halved until within the target",
@@ -329,7 +333,7 @@ def shell_volume(outer, inner):
 
 
 # --- curvature and folds ------------------------------------------------------------------------------------
-def tightest_bends(surf, per_span=8):
+def tightest_bends(surf, per_span=16):
     """Where S bends most tightly round its inside (the largest positive principal curvature with the outward
     normal: an inward wall folds there) and round its outside (the most negative one, a hollow such as a neck: an
     outward wall folds there) -> {"inward": (radius mm, uv (2,), xyz (3,)), "outward": (...)}. Radius inf where S
@@ -358,7 +362,7 @@ def tightest_bends(surf, per_span=8):
     return out
 
 
-def tightest_inner_bend(surf, per_span=8):
+def tightest_inner_bend(surf, per_span=16):
     """Where S bends most tightly round its inside -> (radius mm, uv (2,), xyz (3,)); see tightest_bends."""
     return tightest_bends(surf, per_span)["inward"]
 
