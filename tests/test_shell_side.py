@@ -49,6 +49,7 @@ def test_sphere_shell_volume_is_the_integral_between_its_walls(side, inward):
     assert np.linalg.norm(shell.surface.evaluate(uv), axis=1) == pytest.approx(r + t - inward, abs=1e-4)
 
 
+@pytest.mark.slow  # the advice bisects the thickness over shell fits
 def test_outward_folds_in_a_hollow_and_is_refused_with_the_place():
     s = _waisted()
     bends = tightest_bends(s)
@@ -66,6 +67,7 @@ def test_outward_folds_in_a_hollow_and_is_refused_with_the_place():
     make_shell(s, fits, target=0.1, side="outward")  # the advice holds
 
 
+@pytest.mark.slow  # the advice bisects the thickness over shell fits
 def test_both_ways_is_limited_by_the_side_that_folds_first():
     s = _waisted()
     hollow = tightest_bends(s)["outward"][0]
