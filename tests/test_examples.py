@@ -16,7 +16,7 @@ SPECS = sorted(p.stem for p in (REPO / "specs").glob("*.yaml"))
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SPECS)
 def test_example_builds_and_checks(name, tmp_path):
-    # the duck's 2.5 mm wall needs ten tolerances across it
+    # the duck's 4.5 mm wall needs many tolerances across it
     spec = example_spec(name, tmp_path, tolerance=0.2 if name == "duck" else 0.5)
     report = volpuzzle.build(spec, jobs=1)
     out = tmp_path / "out" / name

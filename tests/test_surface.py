@@ -190,6 +190,7 @@ def test_freeform_shell_volume_within_the_offset_error():
     assert abs(volume_of(shell.volume) - between) <= err * area + 1e-3 * between
 
 
+@pytest.mark.slow  # the advice bisects the thickness over shell fits, and checks it on the full fit
 def test_too_thick_shell_is_refused_with_the_place():
     s = _sphere_surface(1.0).transformed(np.diag([60.0, 40.0, 12.0]))
     radius, uv, xyz = tightest_inner_bend(s)

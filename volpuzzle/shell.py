@@ -1,24 +1,28 @@
-"""`model.shell`: the trivariate between a NURBS surface and its inward offset (the paper's duck and Earth).
+"""`model.shell`: the trivariate between a NURBS surface and its offsets (the paper's duck and Earth).
 
-The surface S is scaled to mm first (units, then `size` on its bounding box), so the thickness t is millimetres of
-the printed object. The shell is ruled along w: w = 0 the inner surface, w = 1 the outer surface S, so w_max is
-the outside (where a texture goes).
+The surface S is scaled to mm first (units, then `size` on its bounding box, less a wall outside it), so the thickness
+t is millimetres of the printed object. `side` puts the wall inside S (inward, the default: S is the outside), outside
+it (outward: S is the inside), half each way (both), or a share s in [0, 1] of it outside: the walls are S - (1 - s) t n
+and S + s t n. The shell is ruled along w: w = 0 the inner wall, w = 1 the outer one, so w_max is the outside (where
+a texture goes).
 
-The true offset S - t n is not a NURBS in general. It is represented on S's own rational basis (same weights, same
-knots, refined): the inner control points are a least-squares fit to samples of the true offset, the knots halved
-until the largest deviation on a denser check grid is at most a quarter of output.tolerance (or four rounds are
-done). When the offset lies in that space (a sphere: the offset is S scaled about its centre) the fit is exact to
-round-off. Shifting S's control points along the normal, the simpler construction, is measured alongside and
-reported, and is orders of magnitude worse on a freeform surface.
+A true offset S + d n is not a NURBS in general. It is represented on S's own rational basis (same weights, same
+knots, refined): its control points are a least-squares fit to samples of the true offset, the knots halved (for
+both walls together) until the largest deviation on a denser check grid is at most a quarter of output.tolerance (or
+four rounds are done). When the offset lies in that space (a sphere: the offset is S scaled about its centre) the fit
+is exact to round-off. Shifting S's control points along the normal, the simpler construction, is measured alongside
+and reported, and is orders of magnitude worse on a freeform surface.
 
-A closed direction (first and last rows of control points equal) keeps its first and last inner rows tied, so the
-shell closes exactly; a collapsed row (a pole: every control point the same) stays collapsed on the inner surface.
-Where one direction is closed it becomes v and the other u, as in the sphere shell (u polar, v azimuth), and u is
-reversed when needed so that the shell is right-handed.
+A closed direction (first and last rows of control points equal) keeps its first and last rows tied, so the shell
+closes exactly; a collapsed row (a pole: every control point the same) stays collapsed on both walls. Where one
+direction is closed it becomes v and the other u, as in the sphere shell (u polar, v azimuth), and u is reversed when
+needed so that the shell is right-handed.
 
-An inward offset folds where t exceeds the radius of curvature of a part of S that bends round the inside (1 / the
-largest positive principal curvature with the outward normal): the Jacobian certificate of the shell refuses it, and
-the message names the place and the thickest shell that certifies.
+An inward wall folds where it is thicker than the radius of curvature of a part of S that bends round the inside (1 /
+the largest positive principal curvature with the outward normal: a ridge), an outward wall where it is thicker than
+the radius of a part that bends round the outside (a hollow, a crease): the Jacobian certificate of the shell refuses
+either, and the message names the place, the bend that limits it and the thickest shell with the same side that
+certifies.
 """
 
 from dataclasses import dataclass
@@ -140,7 +144,8 @@ def arrange(surf):
 
 # --- the offset ----------------------------------------------------------------------------------------------
 def true_offset(surf, uv, thickness):
-    """(n, 2) -> (n, 3): S - t n, n the unit normal along S_u x S_v (outward after arrange)."""
+    """(n, 2) -> (n, 3): S - t n, n the unit normal along S_u x S_v (outward after arrange); a negative t is an
+    outward offset."""
     return surf.evaluate(uv) - thickness * surf.normals(uv)
 
 
@@ -200,37 +205,55 @@ def fit_offset(surf, thickness):
     return Surface(surf.degrees, surf.knots, x[var], surf.weights)
 
 
-def distance_to(surf, x, uv, iterations=12):
-    """Distance from points x (n, 3) to surf, by Gauss-Newton from the parameters uv (n, 2) of a nearby foot point
-    (clamped to the domain) -> (n,)."""
+def distance_to(surf, x, uv, iterations=20):
+    """Distance from points x (n, 3) to surf, by Newton from the parameters uv (n, 2) of a nearby foot point
+    (clamped to the domain) -> (n,). Newton, not Gauss-Newton: from a point t beyond a hollow of radius R < t (an
+    inward offset in a crease, an outward one round a tight ridge) Gauss-Newton's step is 1 + t / R times too long
+    and diverges; a step that does not bring the surface nearer is halved."""
     dom = np.array(surf.domain)
     uv = np.array(uv, dtype=float)
+    dist = np.linalg.norm(surf.evaluate(uv) - x, axis=1)
     active = np.arange(len(uv))
-    tiny = 1e-9 * np.max(dom[:, 1] - dom[:, 0])  # about 1e-7 mm on the surface
     for _ in range(iterations):
-        p, d = surf.evaluate_with_derivatives(uv[active])
-        r = p - x[active]
-        su, sv = d[:, :, 0], d[:, :, 1]
+        d = surf.derivatives(uv[active], 2)
+        r = d[:, 0, 0] - x[active]
+        su, sv = d[:, 1, 0], d[:, 0, 1]
         a, b, c = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
+        ha, hb, hc = a + (r * d[:, 2, 0]).sum(1), b + (r * d[:, 1, 1]).sum(1), c + (r * d[:, 0, 2]).sum(1)
+        convex = (ha > 0) & (ha * hc - hb * hb > 0)  # else Gauss-Newton's matrix, positive but for poles
+        a, b, c = np.where(convex, ha, a), np.where(convex, hb, b), np.where(convex, hc, c)
         ru, rv = (su * r).sum(1), (sv * r).sum(1)
-        reg = 1e-12 * (a + c)  # a pole: S_v = 0
+        reg = 1e-12 * (np.abs(a) + np.abs(c))  # a pole: S_v = 0
         a, c = a + reg, c + reg
         det = a * c - b * b
         step = np.stack([(c * ru - b * rv) / det, (a * rv - b * ru) / det], 1)
-        uv[active] = np.clip(uv[active] - step, dom[:, 0], dom[:, 1])
-        active = active[np.max(np.abs(step), axis=1) > tiny]  # converged points stop
+        new, nd = uv[active].copy(), dist[active].copy()
+        todo = np.arange(len(active))
+        for _halve in range(8):
+            trial = np.clip(uv[active[todo]] - step[todo], dom[:, 0], dom[:, 1])
+            td = np.linalg.norm(surf.evaluate(trial) - x[active[todo]], axis=1)
+            take = td <= nd[todo]
+            new[todo[take]], nd[todo[take]] = trial[take], td[take]
+            todo = todo[~take]
+            if not len(todo):
+                break
+            step[todo] *= 0.5
+        gain = dist[active] - nd
+        uv[active], dist[active] = new, nd
+        active = active[gain > 1e-9]  # converged points stop (at a pole v may still wander: it moves nothing)
         if not len(active):
             break
-    return np.linalg.norm(surf.evaluate(uv) - x, axis=1)
+    return dist
 
 
 def offset_error(surf, inner, thickness):
-    """Largest deviation of the inner surface from the true offset, | distance(inner(u, v), S) - t | in mm, on a
-    check grid off the fit's samples -> (error, uv of it). Measured as a distance, not at equal parameters: at a
-    cone-like pole the normals fan out and the offset there is a piece of sphere, not one point per (u, v)."""
+    """Largest deviation of a fitted offset (inner, or outer for a negative thickness) from the true offset,
+    | distance(offset(u, v), S) - |t| | in mm, on a check grid off the fit's samples -> (error, uv of it). Measured
+    as a distance, not at equal parameters: at a cone-like pole the normals fan out and the offset there is a piece
+    of sphere, not one point per (u, v)."""
     u, v = _samples(surf, 0, _CHECK_PER_SPAN, 0.37), _samples(surf, 1, _CHECK_PER_SPAN, 0.37)
     uv = np.stack(np.meshgrid(u, v, indexing="ij"), -1).reshape(-1, 2)
-    d = np.abs(distance_to(surf, inner.evaluate(uv), uv) - thickness)
+    d = np.abs(distance_to(surf, inner.evaluate(uv), uv) - abs(thickness))
     k = int(np.argmax(d))
     return float(d[k]), uv[k]
 
@@ -260,30 +283,46 @@ def _normal_shift(surf, thickness):
     return Surface(surf.degrees, surf.knots, surf.control_points - thickness * n, surf.weights)
 
 
-def inner_surface(surf, thickness, target, max_rounds=_MAX_ROUNDS):
-    """The fitted inner surface, refining until its error is at most target mm (or stops improving by a tenth).
-    -> (outer on the inner's knots, inner, {method, offset_max_error_mm, ...})."""
+def _fitted(surf, depth):
+    """The surface depth mm inside surf (outside for a negative depth) on surf's basis -> (Surface, error mm, uv of
+    it); surf itself for depth 0 (exact)."""
+    if depth == 0.0:
+        return surf, 0.0, np.array(surf.domain, float).mean(axis=1)
+    off = fit_offset(surf, depth)
+    err, where = offset_error(surf, off, depth)
+    return off, err, where
+
+
+def offset_surfaces(surf, inward, outward, target, max_rounds=_MAX_ROUNDS):
+    """The walls inward mm inside and outward mm outside surf, fitted and refined together until each is within
+    target mm of its true offset (or stops improving by a tenth) -> (inner, outer, {method, offset_max_error_mm,
+    ...}); both on the same knots and weights."""
     rounds, best = [], None
     for r in range(max_rounds):
-        inner = fit_offset(surf, thickness)
-        err, where = offset_error(surf, inner, thickness)
+        inner, e_in, at_in = _fitted(surf, inward)
+        outer, e_out, at_out = _fitted(surf, -outward)
+        err = max(e_in, e_out)
         rounds.append({"control_points": list(surf.shape), "max_error_mm": err})
         if best is None or err < best[0]:
-            best = (err, where, surf, inner)
+            best = (err, surf, inner, outer, (e_in, at_in), (e_out, at_out))
         stalled = len(rounds) > 1 and err > 0.9 * rounds[-2]["max_error_mm"]
         if err <= target or r == max_rounds - 1 or stalled:
             break
         surf = _refined(surf)
-    err, where, surf, inner = best  # refining past a feature the fit cannot follow can make it worse
-    naive, _ = offset_error(surf, _normal_shift(surf, thickness), thickness)
+    err, surf, inner, outer, fit_in, fit_out = best  # refining past a feature the fit cannot follow can be worse
+    fitted = [(name, t, e) for name, t, e in (("inner", inward, fit_in), ("outer", -outward, fit_out)) if t != 0.0]
+    name, depth, (_, where) = max(fitted, key=lambda f: f[2][0])  # the worst fitted wall is the one reported
+    naive = offset_error(surf, _normal_shift(surf, depth), depth)[0]  # of the reported wall: the comparison
     exact = err <= 1e-6 * _size(surf)  # round-off, and the normals taken a hair off the poles
     info = {"method": "exact (the offset lies in the surface's rational space)" if exact else
             "least-squares fit on the surface's rational basis, knots halved until within the target",
-            "offset_max_error_mm": err, "offset_error_uv": [float(x) for x in where],
+            "offset_max_error_mm": err, "offset_error_surface": name,
+            "offset_error_uv": [float(x) for x in where],
             "offset_error_xyz_mm": [float(x) for x in surf.evaluate(np.reshape(where, (1, 2)))[0]],
-            "offset_target_mm": target, "fit_rounds": rounds,
-            "normal_shift_max_error_mm": naive}
-    return surf, inner, info
+            "offset_target_mm": target, "fit_rounds": rounds, "normal_shift_max_error_mm": naive}
+    for n, _, (e, _where) in fitted:
+        info[f"{n}_offset_max_error_mm"] = e
+    return inner, outer, info
 
 
 def shell_volume(outer, inner):
@@ -294,9 +333,11 @@ def shell_volume(outer, inner):
 
 
 # --- curvature and folds ------------------------------------------------------------------------------------
-def tightest_inner_bend(surf, per_span=8):
-    """Where S bends most tightly round its inside: the largest positive principal curvature (outward normal)
-    -> (radius mm, uv (2,), xyz (3,)). Radius inf when S bends nowhere round the inside (a plane)."""
+def tightest_bends(surf, per_span=16):
+    """Where S bends most tightly round its inside (the largest positive principal curvature with the outward
+    normal: an inward wall folds there) and round its outside (the most negative one, a hollow such as a neck: an
+    outward wall folds there) -> {"inward": (radius mm, uv (2,), xyz (3,)), "outward": (...)}. Radius inf where S
+    bends nowhere that way (a plane)."""
     u, v = _samples(surf, 0, per_span, 0.21), _samples(surf, 1, per_span, 0.21)
     uv = np.stack(np.meshgrid(u, v, indexing="ij"), -1).reshape(-1, 2)
     d = surf.derivatives(uv, 2)
@@ -311,11 +352,19 @@ def tightest_inner_bend(surf, per_span=8):
     den = np.maximum(E * G - F * F, 1e-300)
     H = (E * N - 2 * F * M + G * L) / (2 * den)
     K = (L * N - M * M) / den
-    kmax = H + np.sqrt(np.maximum(H * H - K, 0.0))
-    kmax[~ok] = -np.inf
-    k = int(np.argmax(kmax))
-    radius = float(1.0 / kmax[k]) if kmax[k] > 0 else float("inf")
-    return radius, uv[k], surf.evaluate(uv[k:k + 1])[0]
+    root = np.sqrt(np.maximum(H * H - K, 0.0))
+    out = {}
+    for side, bend in (("inward", H + root), ("outward", -(H - root))):
+        bend = np.where(ok, bend, -np.inf)
+        k = int(np.argmax(bend))
+        radius = float(1.0 / bend[k]) if bend[k] > 0 else float("inf")
+        out[side] = (radius, uv[k], surf.evaluate(uv[k:k + 1])[0])
+    return out
+
+
+def tightest_inner_bend(surf, per_span=16):
+    """Where S bends most tightly round its inside -> (radius mm, uv (2,), xyz (3,)); see tightest_bends."""
+    return tightest_bends(surf, per_span)["inward"]
 
 
 def _certify(vol):
@@ -328,43 +377,91 @@ def _fmt(x):
     return f"{float(x):.3g}"
 
 
-def _thickest(surf, hi, target):
-    """The largest thickness below hi (within ~3%) whose shell certifies, by bisection from 0."""
+SIDES = {"inward": 0.0, "outward": 1.0, "both": 0.5}  # the share of the wall outside the surface
+
+
+def outward_share(side):
+    """model.shell.side -> the share (0..1) of the thickness that lies outside the surface."""
+    return float(SIDES[side]) if isinstance(side, str) else float(side)
+
+
+def _walls(thickness, share):
+    """(mm inside, mm outside) the surface."""
+    out = float(thickness) * share
+    return float(thickness) - out, out
+
+
+def _certifies(surf, thickness, share, target, max_rounds=_MAX_ROUNDS):
+    inner, outer, _ = offset_surfaces(surf, *_walls(thickness, share), target, max_rounds=max_rounds)
+    return _certify(shell_volume(outer, inner)).ok
+
+
+def _thickest(surf, hi, share, target):
+    """The largest thickness below hi, rounded down to 0.1 mm, whose shell certifies with the same share outside the
+    surface: bisection on coarse fits (within ~3%), then the full fit of the build, stepping down while it folds (a
+    finer fit follows a tight bend closer, so it can fold a little sooner)."""
     lo = 0.0
     for _ in range(6):
         mid = 0.5 * (lo + hi)
-        o, inner, _ = inner_surface(surf, mid, target, max_rounds=2)
-        if _certify(shell_volume(o, inner)).ok:
-            lo = mid
-        else:
-            hi = mid
+        lo, hi = (mid, hi) if _certifies(surf, mid, share, target, max_rounds=2) else (lo, mid)
         if hi - lo < 0.03 * hi:
             break
-    return lo
+    t = np.floor(lo * 10) / 10
+    for _ in range(4):
+        if t <= 0 or _certifies(surf, t, share, target):
+            break
+        t = np.round(t - 0.1, 1)
+    return max(float(t), 0.0)
 
 
-def make_shell(surf, thickness, target, key="model.shell.thickness"):
-    """The shell of thickness mm inside surf (already in mm) -> Shell. Raises ModelError where it folds."""
+def _binding_bend(bends, share):
+    """The bend that limits a wall with this share outside: (side, radius, uv, xyz, thickness at which it folds)."""
+    limits = []
+    for side, part in (("inward", 1.0 - share), ("outward", share)):
+        radius, uv, xyz = bends[side]
+        if part > 0:
+            limits.append((side, radius, uv, xyz, radius / part))
+    return min(limits, key=lambda x: x[-1])
+
+
+def _side_words(share):
+    """How the message names the wall's side: '' (inward, the default), 'outward ', 'two-sided ', '30% outward '."""
+    words = {0.0: "", 1.0: "outward ", 0.5: "two-sided "}
+    return words.get(share, f"{_fmt(share * 100)}% outward ")
+
+
+def make_shell(surf, thickness, target, key="model.shell.thickness", side="inward"):
+    """The shell of thickness mm round surf (already in mm): inside it (side inward), outside (outward), half each
+    way (both) or a share (0..1) outside -> Shell. Raises ModelError where it folds."""
+    share = outward_share(side)
+    inward, outward = _walls(thickness, share)
     surf, layout = arrange(surf)
-    outer, inner, fit = inner_surface(surf, thickness, target)
+    inner, outer, fit = offset_surfaces(surf, inward, outward, target)
     vol = shell_volume(outer, inner)
     cert = _certify(vol)
+    bends = tightest_bends(surf)
     if not cert.ok:
-        radius, uv, xyz = tightest_inner_bend(surf)
+        way, radius, uv, xyz, limit = _binding_bend(bends, share)
         where_uvw = np.asarray(cert.where_uvw, float)
         at = vol.evaluate(where_uvw.reshape(1, 3))[0]
-        fits = _thickest(surf, min(thickness, radius), target)
-        advice = f"at most {_fmt(np.floor(fits * 10) / 10)}" if fits > 0 else "a smaller thickness"
+        fits = _thickest(surf, min(thickness, limit), share, target)
+        advice = f"at most {_fmt(fits)}" if fits > 0 else "a smaller thickness"
+        round_ = "its inside" if way == "inward" else "its outside (a hollow)"
         raise ModelError(
-            f"{key}: a {_fmt(thickness)} mm shell folds: its Jacobian changes sign near xyz "
-            f"({', '.join(_fmt(c) for c in at)}) mm; the surface bends round its inside with a radius of "
+            f"{key}: a {_fmt(thickness)} mm {_side_words(share)}shell folds: its Jacobian changes sign near xyz "
+            f"({', '.join(_fmt(c) for c in at)}) mm; the surface bends round {round_} with a radius of "
             f"{_fmt(radius)} mm at xyz ({', '.join(_fmt(c) for c in xyz)}) mm, uv ({_fmt(uv[0])}, {_fmt(uv[1])}) "
-            f"(got {_fmt(thickness)}, expected {advice} mm, the thickest shell that certifies)")
-    radius, uv, xyz = tightest_inner_bend(surf)
-    info = {"thickness_mm": float(thickness), **layout, **fit,
-            "smallest_inner_radius_mm": radius if np.isfinite(radius) else None,
+            f"(got {_fmt(thickness)}, expected {advice} mm, the thickest {_side_words(share)}shell that certifies)")
+    info = {"thickness_mm": float(thickness), "side": side if isinstance(side, str) else float(side),
+            "inward_mm": inward, "outward_mm": outward, **layout, **fit,
+            "smallest_inner_radius_mm": _finite(bends["inward"][0]),
+            "smallest_outer_radius_mm": _finite(bends["outward"][0]),
             "control_points": list(vol.shape)}
     return Shell(vol, outer, info)
+
+
+def _finite(x):
+    return float(x) if np.isfinite(x) else None
 
 
 def scale_to_mm(surf, unit_scale, size):
@@ -381,10 +478,17 @@ def scale_to_mm(surf, unit_scale, size):
 
 
 def load_shell(shell_spec, unit_scale, size, tolerance):
-    """model.shell from the spec -> (Shell, mm per model unit, meta of the surface file)."""
+    """model.shell from the spec -> (Shell, mm per model unit, meta of the surface file). `size` is the printed
+    shell's: a wall outside the surface widens the box by its thickness each side (the offset's support is the
+    surface's plus t), so the surface is sized that much smaller."""
     from .io import load_surface_with_meta
 
+    side = getattr(shell_spec, "side", "inward")
+    _, outward = _walls(shell_spec.thickness, outward_share(side))
+    if size is not None and size <= 2 * outward:
+        raise ModelError(f"model.size: {_fmt(size)} mm leaves no surface inside a wall {_fmt(outward)} mm outside "
+                         f"it each side (got {_fmt(size)}, expected more than {_fmt(2 * outward)})")
     surf, meta = load_surface_with_meta(shell_spec.surface, patch=shell_spec.patch)
-    surf, scale = scale_to_mm(surf, unit_scale, size)
-    shell = make_shell(surf, shell_spec.thickness, target=0.25 * tolerance)
+    surf, scale = scale_to_mm(surf, unit_scale, None if size is None else size - 2 * outward)
+    shell = make_shell(surf, shell_spec.thickness, target=0.25 * tolerance, side=side)
     return shell, scale, meta

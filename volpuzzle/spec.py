@@ -57,7 +57,8 @@ _NAME_MAX = 100
 _TOP_KEYS = ("name", "model", "grid", "splits", "periodic", "randomize", "joints", "output", "texture",
              "limits")
 _MODEL_KEYS = ("nurbs", "patch", "builtin", "mesh", "shell", "cage", "units", "size", "repair")
-_SHELL_KEYS = ("surface", "thickness", "patch")
+_SHELL_KEYS = ("surface", "thickness", "patch", "side")
+_SHELL_SIDES = ("inward", "outward", "both")
 _TEXTURE_KEYS = ("image", "face", "transpose")
 _CAGE_KEYS = ("type", "padding", "control_points", "nurbs", "patch")
 _RANDOMIZE_KEYS = ("seed", "amplitude", "control_points")
@@ -85,10 +86,12 @@ class CageSpec:
 
 @dataclass(frozen=True)
 class ShellSpec:
-    """A thick shell inside a NURBS surface: thickness in mm of the printed (sized) object."""
+    """A thick shell round a NURBS surface: thickness in mm of the printed (sized) object; side: inward, outward,
+    both (half each way) or the share (0..1) of the wall outside the surface."""
     surface: Path
     thickness: float
     patch: int = 0
+    side: str | float = "inward"
 
 
 @dataclass(frozen=True)
@@ -436,9 +439,21 @@ class _Checker:
                    if "surface" in sh else None)
         thickness = self.number("model.shell.thickness", sh["thickness"], above=0) if "thickness" in sh else None
         patch = self.integer("model.shell.patch", sh.get("patch", 0), 0)
-        if not ok or surface is None or thickness is None or patch is None:
+        side = sh.get("side", "inward")
+        sides = f"{_one_of(_SHELL_SIDES)}, or the share of the wall outside the surface, 0 to 1"
+        if isinstance(side, bool) or not isinstance(side, (str, int, float)):
+            self.bad("model.shell.side", "not a side", _show(side), sides)
+            side = None
+        elif isinstance(side, str):
+            if side.strip().lower() not in _SHELL_SIDES:
+                self.bad("model.shell.side", "unknown value" + _suggest(side, _SHELL_SIDES), _show(side), sides)
+            side = side.strip().lower() if side.strip().lower() in _SHELL_SIDES else None
+        else:
+            side = self.number("model.shell.side", side, at_least=0, at_most=1,
+                               why=" (the share of the wall outside the surface)")
+        if not ok or surface is None or thickness is None or patch is None or side is None:
             return None
-        return ShellSpec(surface=surface, thickness=float(thickness), patch=int(patch))
+        return ShellSpec(surface=surface, thickness=float(thickness), patch=int(patch), side=side)
 
     def texture(self, value):
         if value is None:
@@ -919,7 +934,8 @@ def spec_to_dict(spec: Spec) -> dict:
     elif m.builtin is not None:
         model["builtin"] = dict(m.builtin)
     elif m.shell is not None:
-        model["shell"] = {"surface": str(m.shell.surface), "thickness": m.shell.thickness, "patch": m.shell.patch}
+        model["shell"] = {"surface": str(m.shell.surface), "thickness": m.shell.thickness, "patch": m.shell.patch,
+                          "side": m.shell.side}
     elif m.mesh is not None:
         model["mesh"] = str(m.mesh)
         cage = m.cage or CageSpec(type="box")
