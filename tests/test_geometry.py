@@ -114,3 +114,16 @@ def test_weld_cancels_coincident_opposite_faces():
     mesh = trimesh.Trimesh(v, f, process=False)
     G.check_solid(mesh, "pair")
     assert mesh.volume == pytest.approx(2.0)
+
+
+def test_cylinder_lies_along_its_direction_between_start_and_stop():
+    from volpuzzle.geometry import cylinder, to_trimesh
+
+    d = np.array([1.0, 2.0, 2.0]) / 3.0
+    c = np.array([5.0, -1.0, 2.0])
+    mesh = to_trimesh(cylinder(c, 3 * d, 1.5, -2.0, 4.0, "test", segments=64))
+    t = (mesh.vertices - c) @ d
+    radial = np.linalg.norm((mesh.vertices - c) - t[:, None] * d, axis=1)
+    assert np.allclose([t.min(), t.max()], [-2.0, 4.0]) and np.allclose(radial.max(), 1.5)
+    polygon = 0.5 * 64 * np.sin(2 * np.pi / 64) * 1.5**2  # the inscribed 64-gon's area
+    assert np.isclose(mesh.volume, 6.0 * polygon)

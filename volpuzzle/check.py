@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
-from .geometry import is_ok
+from .geometry import cylinder, is_ok
 from .geometry import memo as _memo
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
@@ -399,17 +399,11 @@ def _short(value) -> str:
     return r.repr(value)
 
 
-def _cylinder(center, direction, radius, start, stop, segments=48):
-    """manifold3d cylinder of `radius` along the unit `direction`, from center+start*d to center+stop*d."""
-    import manifold3d
-
-    d = np.asarray(direction, float)
-    d = d / np.linalg.norm(d)
-    rot = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
-    rot[:3, 3] = np.asarray(center, float) + start * d
-    cyl = manifold3d.Manifold.cylinder(stop - start, radius, radius, segments).transform(rot[:3, :])
-    if not is_ok(cyl) or cyl.is_empty():
-        raise GeometryError(f"joint check: cannot build a test cylinder of radius {radius:g} mm ({cyl.status()})")
+def _cylinder(center, direction, radius, start, stop):
+    """A test cylinder of a pin's room (Manifold), not empty; GeometryError otherwise."""
+    cyl = cylinder(center, direction, radius, start, stop, "joint check")
+    if cyl.is_empty():
+        raise GeometryError(f"joint check: cannot build a test cylinder of radius {radius:g} mm (it is empty)")
     return cyl
 
 

@@ -87,6 +87,19 @@ def from_trimesh(mesh, what):
     return manifold_from_mesh(mesh.vertices, mesh.faces, what)
 
 
+def cylinder(center, direction, radius, start, stop, what, segments=48):
+    """A Manifold cylinder of `radius` along `direction` (3,), from center + start * d to center + stop * d (d the
+    unit direction), its local frame that of grid.frame_from_direction; status checked, naming `what`."""
+    from .grid import frame_from_direction
+
+    d = np.asarray(direction, dtype=float)
+    e1, e2, n = frame_from_direction(d / np.linalg.norm(d))
+    frame = np.zeros((3, 4))
+    frame[:, 0], frame[:, 1], frame[:, 2], frame[:, 3] = e1, e2, n, center
+    cyl = manifold3d.Manifold.cylinder(stop - start, radius, -1.0, segments).translate([0.0, 0.0, start])
+    return check_status(cyl.transform(frame), what, f"a cylinder of radius {radius:g} mm")
+
+
 def solid_of(mesh, what):
     """from_trimesh(mesh, what), made once per mesh object while its content stays the same (memo): stages that
     read the same piece share its Manifold, which no operation changes in place."""

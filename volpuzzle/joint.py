@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import GeometryError, SpecError
-from .geometry import is_ok
+from .geometry import check_status
 from .grid import AXES, frame_from_direction, piece_id
 from .spec import JOINT_ALLOW, JointSpec
 
@@ -801,12 +801,6 @@ def _manifold():
     return manifold3d
 
 
-def _checked(m, what):
-    if not is_ok(m):
-        raise GeometryError(f"{what}: the geometry engine failed ({m.status()})")
-    return m
-
-
 def _frame(j, flip=False):
     """3x4 rigid transform: local z -> the joint's direction (reversed if flip), origin -> its centre."""
     e1, e2, n = frame_from_direction(np.asarray(j.direction, dtype=float) * (-1.0 if flip else 1.0))
@@ -854,7 +848,7 @@ def pin_solid(j):
     if j.style != "pin":
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)}: style {j.style} has no pin")
     s = _local_solid(j, j.radius, -j.base_depth, j.length).transform(_frame(j))
-    return _checked(s, f"pin of {piece_id(j.pin_cell)}")
+    return check_status(s, f"pin of {piece_id(j.pin_cell)}", "building its solid")
 
 
 def _hole_local(j):
@@ -871,7 +865,7 @@ def hole_solid(j, cell_index):
         frame = _frame(j, flip=True)
     else:
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)} makes no hole in {piece_id(idx)}")
-    return _checked(_hole_local(j).transform(frame), f"hole in {piece_id(idx)}")
+    return check_status(_hole_local(j).transform(frame), f"hole in {piece_id(idx)}", "building its solid")
 
 
 def dowel_solid(j):
@@ -880,7 +874,8 @@ def dowel_solid(j):
     if j.shape == "snap":  # a dowel is plain: it must slide into both holes
         m3 = _manifold()
         s = m3.Manifold.cylinder(2 * j.length, j.radius, -1.0, j.segments).translate([0.0, 0.0, -j.length])
-    return _checked(s.transform(_frame(j)), f"dowel between {piece_id(j.pin_cell)} and {piece_id(j.hole_cell)}")
+    what = f"dowel between {piece_id(j.pin_cell)} and {piece_id(j.hole_cell)}"
+    return check_status(s.transform(_frame(j)), what, "building its solid")
 
 
 def _domain_transform(j, uvw, jac, flip=False):
@@ -899,7 +894,7 @@ def pin_solid_domain(j):
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)}: style {j.style} has no pin")
     m = _domain_transform(j, j.uvw_pin, j.jacobian_pin)
     solid = _local_solid(j, j.radius, -j.base_depth, j.length).transform(m)
-    return _checked(solid, f"domain pin of {piece_id(j.pin_cell)}")
+    return check_status(solid, f"domain pin of {piece_id(j.pin_cell)}", "building its solid")
 
 
 def hole_solid_domain(j, cell_index):
@@ -911,7 +906,7 @@ def hole_solid_domain(j, cell_index):
         m = _domain_transform(j, j.uvw_pin, j.jacobian_pin, flip=True)
     else:
         raise GeometryError(f"joint {piece_id(j.pin_cell)}-{piece_id(j.hole_cell)} makes no hole in {piece_id(idx)}")
-    return _checked(_hole_local(j).transform(m), f"domain hole in {piece_id(idx)}")
+    return check_status(_hole_local(j).transform(m), f"domain hole in {piece_id(idx)}", "building its solid")
 
 
 def require_pieces_joined(spec, pieces, joints, contacts):
