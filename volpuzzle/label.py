@@ -625,8 +625,8 @@ def _outer_faces(cell, tiling, fmap):
 def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM, tries=64, avoid=None,
                 region=None, outer=True):
     """The places for the cell's label, best first (rule in the module docstring): LabelSites that hold `text`
-    (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured; none whose
-    normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate).
+    (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured per class; none
+    whose normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate).
     region: the piece's _BodyFaces, to keep the text on the piece's real faces (a mesh model's piece covers only part
     of its cage cell's faces). outer: also D's outer faces, after every inner one (the hidden ones first)."""
     text = str(text if text is not None else cell.id)
@@ -653,13 +653,12 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
         if avoid is not None:
             cands = [c for c in cands if float(np.dot(c[4][1], avoid)) <= _AVOID_COS]
         cands.sort(key=lambda c: c[0])
+        # each class measures `tries` candidates of its own: a crowded inner face whose small spots turn out too
+        # curved must not use up the tries of a clear face further down the list
         for _, a, side, hj, args in cands[:tries]:
             site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
             if site is not None:
                 yield site
-        tries -= min(tries, len(cands))
-        if not tries:
-            break
 
 
 def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM):
