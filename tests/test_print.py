@@ -318,3 +318,35 @@ def test_a_build_whose_facing_cut_faces_close_is_refused_before_it_is_written(tm
                                             r"each other 0.000 mm apart .*expected the face clearance 0.15 mm"):
         volpuzzle.build(spec, jobs=1)
     assert not (tmp_path / "out" / "sphere-shell").exists()
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# loose dowels printed flat
+
+
+def test_loose_dowels_lie_flat_on_the_plate_on_a_flat_that_holds_them():
+    import manifold3d as m3
+
+    from volpuzzle.layout import MIN_BED_MM2, bed_contact, lay_dowels_flat, layout
+
+    class Joint:  # the one field lay_dowels_flat reads of a joint
+        def __init__(self, direction):
+            self.direction = np.asarray(direction, float)
+
+    dirs = [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.6, 0.0, 0.8)]
+    dowels = []
+    for k, d in enumerate(dirs):
+        rod = m3.Manifold.cylinder(12.0, 2.5, 2.5, 24).translate((0.0, 0.0, -6.0))
+        frame = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
+        frame[:3, 3] = (30.0 * k, 5.0, 7.0)
+        dowels.append((f"dowel-{k:02d}", G.to_trimesh(rod.transform(frame[:3, :]))))
+    flat, poses = lay_dowels_flat(dowels, [Joint(d) for d in dirs])
+    places, _ = layout(flat, (250, 210), 4.0, poses=poses, margin=10.0)
+    for (name, mesh), (_, before), d, place in zip(flat, dowels, dirs, places, strict=True):
+        axis = place.transform[:3, :3] @ np.asarray(d)
+        assert abs(axis[2]) < 1e-6, name  # the dowel's axis lies in the plate
+        assert 0 < poses[name].base_cut_mm <= 0.6  # a shallow flat along its side, not a deep one
+        assert bed_contact(mesh.vertices, mesh.faces, place.transform) >= MIN_BED_MM2
+        lost = before.volume - mesh.volume
+        assert 0 < lost < 0.05 * before.volume  # the dowel keeps its size: only the flat is taken off
+        G.check_solid(mesh, name)

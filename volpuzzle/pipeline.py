@@ -366,8 +366,11 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     if spec.joints.style == "dowel":
         from .geometry import to_trimesh
         from .joint import dowel_solid
+        from .layout import lay_dowels_flat
 
         dowels = [(f"dowel-{i:02d}", to_trimesh(dowel_solid(j))) for i, j in enumerate(joints)]
+        dowels, dowel_poses = lay_dowels_flat(dowels, joints)
+        state["poses"] = {**state["poses"], **dowel_poses}
     assembly = _assembly(stages["plan"], pieces, joints, timer, progress, allow=spec.joints.allow,
                          randomized=spec.randomize is not None)
     colors = piece_colors(len(pieces))
