@@ -426,7 +426,8 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     x0_local = x0 - origin
     edge = edge - origin
     # the face's outline keeps the text MARGIN_MM inside it; an axis point keeps it R away, but only within reach
-    # of the face along the normal
+    # of the face along the normal: below it, a groove `depth` deep leaves R - r - clearance = JOINT_CLEAR_MM of
+    # wall to a hole whose axis lies deeper than depth + R, so such an axis (one running along the face) is no bar
     on_piece = good
     if region is not None:
         outline, covered = region.on_face(x0, normals)
@@ -434,7 +435,7 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
         on_piece = good & covered
     ko = _keep_out(np.concatenate([edge, axes_pts - origin]),
                    np.concatenate([np.full(len(edge), MARGIN_MM), axes_r]),
-                   np.concatenate([np.full(len(edge), -np.inf), -(depth + 2.0 + axes_r)]),
+                   np.concatenate([np.full(len(edge), -np.inf), -(depth + axes_r)]),
                    np.concatenate([np.full(len(edge), np.inf), TOP_MM + 2.0 + axes_r]))
     off_centre = np.round(np.hypot(fb - 0.5, fc - 0.5), 6)
     # both text directions (up along either in-face parameter) at once: centres k = 0 .. n-1, then n .. 2n-1

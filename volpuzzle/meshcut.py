@@ -664,9 +664,68 @@ def add_joints(pieces, cells, joints):
     return out
 
 
-def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
+# --- face clearance -------------------------------------------------------------------------------------------------
+def set_back_faces(cut, cells, shrunk, merges, clearance):
+    """{id: Manifold} merged pieces (cut by the mesh, joints not yet added) -> ({id: Manifold}, mm^3 taken): every
+    face a piece shares with another set back by half of `clearance`, as compose sets back a volume's cut faces.
+
+    cells: {cell id: Manifold} the cage cells as cut (faces not set back); shrunk: the same cells composed with the
+    face clearance. A piece made of one cell is that piece within its shrunk cell. A piece that took in fragments of
+    other cells keeps, besides each member cell's shrunk part, the layer between two of its own parts that touch
+    (each part moved by the clearance across their common face, within the two cells' layers), so it stays one solid;
+    should it still come apart, it is left as it was (its neighbours then keep their half of the gap)."""
+    from .geometry import boolean
+
+    members = {pid: [pid] for pid in cut}
+    for r in merges:
+        if r.get("to") in members and r.get("from") in cells and r["from"] not in members[r["to"]]:
+            members[r["to"]].append(r["from"])
+    out, taken = {}, 0.0
+    for pid, body in cut.items():
+        what = f"{pid} (face clearance)"
+        keep = shrunk[members[pid][0]]
+        for x in members[pid][1:]:
+            keep = boolean(keep, shrunk[x], "union", what)
+        if len(members[pid]) > 1:
+            parts = {x: boolean(body, cells[x], "intersection", what) for x in members[pid]}
+            names = members[pid]
+            for i, x in enumerate(names):
+                for y in names[i + 1:]:
+                    n = _contact_direction(parts[x], parts[y])
+                    if n is None:
+                        continue
+                    layer = boolean(boolean(cells[x], shrunk[x], "difference", what),
+                                    boolean(cells[y], shrunk[y], "difference", what), "union", what)
+                    reach = (boolean(parts[x].translate(list(clearance * n)),
+                                     parts[y].translate(list(-clearance * n)), "union", what))
+                    keep = boolean(keep, boolean(layer, reach, "intersection", what), "union", what)
+        new = boolean(body, keep, "intersection", what)
+        if new.is_empty() or len(new.decompose()) != len(body.decompose()):
+            new = body
+        taken += float(body.volume()) - float(new.volume())
+        out[pid] = new
+    return out, taken
+
+
+def _contact_direction(a, b):
+    """Mean unit normal (3,) of the patch where Manifolds a and b touch, from a into b, or None when they do not."""
+    from .geometry import to_trimesh
+
+    ma, mb = to_trimesh(a), to_trimesh(b)
+    masks = _shared_faces([ma, mb])
+    tri = masks.get((0, 1))
+    if tri is None:
+        return None
+    n = (ma.face_normals[tri] * ma.area_faces[tri][:, None]).sum(axis=0)
+    size = float(np.linalg.norm(n))
+    return n / size if size > 0 else None
+
+
+def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_clearance=0.0):
     """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints placed on the
-    final contacts, then pins and holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict)"""
+    final contacts, the faces between pieces set back by half of face_clearance each (set_back_faces), then pins and
+    holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict; its "face_clearance_mm3" is the
+    volume the clearance took)"""
     from .compose import Piece, compose
     from .geometry import from_trimesh, to_trimesh
 
@@ -689,7 +748,14 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
             if problem and "loose" not in joint_spec.allow:
                 raise GeometryError(problem)
     pieces = []
+    taken = 0.0
     with timer("compose", progress):
+        if face_clearance > 0:
+            # the contacts, merges and joints above need the faces closed (they are found where pieces touch):
+            # the faces are set back only now, before the pins and holes, which keep their own clearances
+            shrunk = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, face_clearance=face_clearance)
+            cut, taken = set_back_faces(cut, {p.id: from_trimesh(p.mesh, p.id) for p in bodies},
+                                        {p.id: from_trimesh(p.mesh, p.id) for p in shrunk}, merges, face_clearance)
         jointed = add_joints(cut, cells, joints)
         for pid in sorted(cut, key=lambda k: cells[k]):
             mesh = to_trimesh(jointed[pid])
@@ -697,7 +763,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
                                 int(len(mesh.faces))))
     report = {"cells_without_piece": sorted(set(cells) - set(cut)), "merged": merges, "contacts": records,
               "contacts_touching": len(records), "contacts_with_room": sum(1 for r in records if r["room"]),
-              "contacts_pinned": sum(1 for r in records if r["pinned"])}
+              "contacts_pinned": sum(1 for r in records if r["pinned"]), "face_clearance_mm3": taken}
     return pieces, joints, plan, report
 
 

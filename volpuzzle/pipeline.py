@@ -318,18 +318,12 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
               f"cut faces meet)", file=sys.stderr)
         clearance = 0.0
     if stages["model"].mesh is not None:
-        if clearance > 0:
-            # Fragments of a cage cell are merged into the neighbour they touch and joints are kept inside two
-            # touching cells: both need the cut faces closed, so the clearance would have to come after them.
-            print(f"warning: output.face_clearance: not applied to a mesh model yet (got {clearance:g} mm, the cut "
-                  f"faces meet)", file=sys.stderr)
-            clearance = 0.0
         from .meshcut import compose_in_mesh
 
         pieces, joints, stages["plan"], mesh_report = compose_in_mesh(stages, spec.joints, tolerance, jobs, timer,
-                                                                      progress)
+                                                                      progress, face_clearance=clearance)
         gaps = sum(joint_gap_volume(j) for j in joints)
-        face_gaps = 0.0
+        face_gaps = mesh_report.pop("face_clearance_mm3", 0.0)
         expected = stages["model_report"]["volume_mm3"] - gaps - face_gaps
         pieces, labels, engraved, checks = finish(pieces, joints, expected)
     else:
@@ -711,7 +705,7 @@ def validate(spec_path, allow_large=False):
     spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     stages = prepare(spec)
     _check_plate(spec, stages["tiling"], stages["fmap"])  # build refuses a small plate before meshing: so does this
-    clearance = 0.0 if stages["model"].mesh is not None else spec.output.face_clearance  # see build
+    clearance = spec.output.face_clearance
     return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(stages["joints"]),
             "model": stages["model_report"], "randomize": stages["randomize_report"],
             "fit": _fit(spec, stages["joints"], clearance)}
