@@ -672,7 +672,7 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
     cells: {cell id: Manifold} the cage cells as cut (faces not set back); shrunk: the same cells composed with the
     face clearance. A piece made of one cell is that piece within its shrunk cell. A piece that took in fragments of
     other cells keeps, besides each member cell's shrunk part, the layer between two of its own parts that touch
-    (each part moved by the clearance across their common face, within the two cells' layers), so it stays one solid;
+    (over their contact: where both parts, moved by the clearance across it, overlap), so it stays one solid;
     should it still come apart, it is left as it was (its neighbours then keep their half of the gap)."""
     from .geometry import boolean
 
@@ -696,8 +696,10 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
                         continue
                     layer = boolean(boolean(cells[x], shrunk[x], "difference", what),
                                     boolean(cells[y], shrunk[y], "difference", what), "union", what)
+                    # each part moved by the clearance across the common face: where both moved copies overlap is
+                    # the column over their contact only (not over x's faces towards other pieces), both sides' layers
                     reach = (boolean(parts[x].translate(list(clearance * n)),
-                                     parts[y].translate(list(-clearance * n)), "union", what))
+                                     parts[y].translate(list(-clearance * n)), "intersection", what))
                     keep = boolean(keep, boolean(layer, reach, "intersection", what), "union", what)
         new = boolean(body, keep, "intersection", what)
         if new.is_empty() or len(new.decompose()) != len(body.decompose()):
