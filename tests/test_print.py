@@ -350,3 +350,39 @@ def test_loose_dowels_lie_flat_on_the_plate_on_a_flat_that_holds_them():
         lost = before.volume - mesh.volume
         assert 0 < lost < 0.05 * before.volume  # the dowel keeps its size: only the flat is taken off
         G.check_solid(mesh, name)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# every piece labelled: a small mesh model (whose cut faces lie partly off the pieces) and a small shell (whose cut
+# faces are as thin as the wall)
+
+
+@pytest.mark.slow
+def test_small_mesh_build_labels_every_piece_and_keeps_the_face_clearance(tmp_path):
+    from helpers_build import example_spec
+
+    import volpuzzle
+
+    report = volpuzzle.build(example_spec("gear-cylinder", tmp_path, tolerance=0.2, grid=[2, 3, 1]), jobs=1)
+    labels = {p["id"]: p["label"] for p in report["pieces"]}
+    assert all(v.get("text") for v in labels.values()), labels
+    printable = report["checks"]["printability"]
+    assert printable["unlabelled"] == [] and not printable["failures"]
+    # neighbours apart by the clearance, and the volume it took is in the volume check
+    assert report["checks"]["face_clearance_mm"] == 0.15 and report["checks"]["face_clearance_mm3"] > 0
+    assert printable["median_face_gap_mm"] == pytest.approx(0.15, rel=0.05)
+    assert abs(report["checks"]["volume_error"]) < 0.005
+
+
+@pytest.mark.slow
+def test_small_shell_build_labels_every_piece(tmp_path):
+    from helpers_build import example_spec
+
+    import volpuzzle
+
+    report = volpuzzle.build(example_spec("sphere-shell", tmp_path, tolerance=0.4, grid=[3, 4, 1]), jobs=1)
+    labels = {p["id"]: p["label"] for p in report["pieces"]}
+    assert all(v.get("text") for v in labels.values()), labels
+    assert report["checks"]["printability"]["unlabelled"] == []
+    # the wall is too thin for text on its cut faces of the poles' pieces: the hidden inside of the shell holds them
+    assert any(v.get("on_outer_face") for v in labels.values())

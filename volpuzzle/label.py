@@ -9,8 +9,12 @@ outer faces of D never are. On each candidate, centres on a grid of face fractio
 either in-face parameter) are tried; the text's height is the largest that keeps its box a margin inside the face
 (projected on the tangent plane at the centre) and R = reach + clearance + 1 mm from every joint axis of the piece
 (pin, hole or dowel, whatever face it is on), capped at MAX_HEIGHT_MM. Faces that carry no joint win if any of them
-holds a label; otherwise the best spot away from the joint circles on a jointed face is used. Within a class: larger
-text, then nearer the face centre, then the first in face order. Too small for MIN_STROKE_MM strokes: no label (None).
+holds a label; otherwise the best spot away from the joint circles on a jointed face is used; then D's outer faces,
+those that look into the model first (the inside of a shell, out of sight once assembled). Within a class: larger
+text, then nearer the face centre, then the first in face order. Too small for the stroke asked (MIN_STROKE_MM, then
+the finer STROKES_MM): no site. A mesh model's piece covers only part of its cage cell's faces: label_piece then
+searches again on the piece's real outline on each face (_BodyFaces), and its caller may mirror the id on the bed side
+(engrave_bed) as the last resort.
 
 Curvature. The text prism is built in the tangent frame at the site and bent onto the face: its floor follows the
 surface measured under the text (from the body mesh itself by ray casting, falling back to F), lowered by
@@ -638,12 +642,12 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
     # classes in the order they are tried: inner faces without a joint, with one; outer faces hidden, in sight
     faces = [(int(hj), order, face.axis, side, hj)
              for order, (face, side) in enumerate(tiling.faces_of(index)) for hj in [bool(_face_joints(face, joints))]]
-    if outer:
-        n = len(faces)
-        faces += [(2 if hidden else 3, n + k, a, side, False)
-                  for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
     # A class is measured only when none of the earlier ones holds the text: the same order as sorting all at once.
-    for rank in range(4):
+    for rank in range(4 if outer else 2):
+        if rank == 2:  # the outer faces are looked at only when no inner face held the text
+            n = len(faces)
+            faces += [(2 if hidden else 3, n + k, a, side, False)
+                      for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
         cands = []
         for r, order, a, side, hj in faces:
             if r != rank:
