@@ -676,13 +676,20 @@ def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, str
 # Engraving
 
 
-def _measured_heights(body, site):
+def _measured_heights(body, site, arrays=None):
     """Heights (ny, nx) of the body's own surface above the site's tangent plane (its printed surface, not F), by a
     ray down the normal at every grid point; F's height where the ray finds nothing near it."""
-    return _measured(body, site)[0]
+    return _measured(body, site, arrays)[0]
 
 
-def _measured(body, site):
+def _mesh_arrays(body):
+    """A Manifold's vertices (n, 3) float64 and triangles (m, 3) int64."""
+    mesh = body.to_mesh64()
+    return (np.asarray(mesh.vert_properties, dtype=float)[:, :3],
+            np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3))
+
+
+def _measured(body, site, arrays=None):
     """_measured_heights, and (ny, nx) bool: where the ray found the body's surface near F's (False where the face
     of F lies off the body, as a cage's face outside a mesh model does).
 
@@ -693,9 +700,8 @@ def _measured(body, site):
     xs, ys = np.asarray(site.grid_x, float), np.asarray(site.grid_y, float)
     frame = site.frame()
     span = float(h.max() - h.min()) + 2.0
-    mesh = body.to_mesh64()
-    verts = (np.asarray(mesh.vert_properties, dtype=float)[:, :3] - frame[:, 3]) @ frame[:, :3]
-    faces = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    verts, faces = arrays if arrays is not None else _mesh_arrays(body)
+    verts = (verts - frame[:, 3]) @ frame[:, :3]
     corners = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
     lo = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
     hi = np.maximum(np.maximum(corners[0], corners[1]), corners[2])
@@ -734,7 +740,7 @@ def _measured(body, site):
     return h, near
 
 
-def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM):
+def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
     `depth` mm into it at `site` -> Manifold.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
@@ -749,7 +755,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
-    h = _measured_heights(body, site)
+    h = _measured_heights(body, site, arrays)
     gy, gx = np.gradient(h, ys, xs)
     # depth along the surface normal: a slope g lowers the floor by depth * sqrt(1 + g^2) measured vertically
     floor = h - depth * np.sqrt(1.0 + gx ** 2 + gy ** 2)
@@ -813,10 +819,8 @@ class _BodyFaces:
     TOL_MM = 0.3  # a triangle this close to the face (and parallel to it) lies on it: tessellation and sampling error
     PARALLEL_COS = float(np.cos(np.radians(15.0)))
 
-    def __init__(self, body):
-        mesh = body.to_mesh64()
-        self.verts = np.asarray(mesh.vert_properties, dtype=float)[:, :3]
-        self.tris = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    def __init__(self, body, arrays=None):
+        self.verts, self.tris = arrays if arrays is not None else _mesh_arrays(body)
         a, b, c = (self.verts[self.tris[:, k]] for k in range(3))
         cross = np.cross(b - a, c - a)
         size = np.linalg.norm(cross, axis=1)
@@ -891,6 +895,7 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
     reasons = []
     region = None
     budget = tries
+    arrays = _mesh_arrays(body)  # the body's triangles, once for every site measured on it
     for _ in range(2):
         tries = budget
         off = False
@@ -901,12 +906,13 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
                     if tries <= 0:
                         break
                     tries -= 1
-                    if float(np.mean(_measured(body, site)[1])) < 0.98:
+                    if float(np.mean(_measured(body, site, arrays)[1])) < 0.98:
                         reasons.append("off the piece")
                         off = True
                         continue
                     try:
-                        out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke)
+                        out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke,
+                                      arrays=arrays)
                     except GeometryError as e:
                         reasons.append(str(e))
                         continue
@@ -914,7 +920,7 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
                 tries = max(tries, 3)  # each fallback gets a few sites of its own
         if not off or region is not None:
             break
-        region = _BodyFaces(body)
+        region = _BodyFaces(body, arrays)
     if not reasons:
         return body, None, "no face large enough and clear of the joints"
     return body, None, "no site held it: " + "; ".join(sorted(set(reasons))[:3])
