@@ -363,7 +363,7 @@ def test_small_mesh_build_labels_every_piece_and_keeps_the_face_clearance(tmp_pa
 
     import volpuzzle
 
-    report = volpuzzle.build(example_spec("gear-cylinder", tmp_path, tolerance=0.2, grid=[2, 3, 1]), jobs=1)
+    report = volpuzzle.build(example_spec("gear-cylinder", tmp_path, tolerance=0.2), jobs=1)
     labels = {p["id"]: p["label"] for p in report["pieces"]}
     assert all(v.get("text") for v in labels.values()), labels
     printable = report["checks"]["printability"]
