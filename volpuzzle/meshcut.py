@@ -696,13 +696,13 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
                     n = _contact_direction(parts[x], parts[y])
                     if n is None:
                         continue
-                    layer = boolean(boolean(cells[x], shrunk[x], "difference", what),
-                                    boolean(cells[y], shrunk[y], "difference", what), "union", what)
                     # each part moved by the clearance across the common face: where both moved copies overlap is
-                    # the column over their contact only (not over x's faces towards other pieces), both sides' layers
+                    # the column over their contact only (not over x's faces towards other pieces), a clearance on
+                    # either side, so it overlaps both shrunk cells instead of meeting them face to face (coincident
+                    # faces leave slivers that float32 files turn into non-manifold edges)
                     reach = (boolean(parts[x].translate(list(clearance * n)),
                                      parts[y].translate(list(-clearance * n)), "intersection", what))
-                    keep = boolean(keep, boolean(layer, reach, "intersection", what), "union", what)
+                    keep = boolean(keep, reach, "union", what)
         new = _kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()))
         if new is None:
             print(f"warning: output.face_clearance: piece {pid} would come apart with its faces set back (a thin "
