@@ -169,10 +169,15 @@ def test_site_is_deterministic():
     assert a.height_mm == b.height_mm
 
 
-def test_single_cell_has_no_inner_face():
+def test_single_cell_has_no_inner_face_but_outer_ones():
     vol = _box_model()
     tiling = tile(vol, (1, 1, 1))
-    assert L.choose_label_site(tiling.cell((0, 0, 0)), tiling, Map(vol), []) is None
+    cell = tiling.cell((0, 0, 0))
+    assert next(iter(L.label_sites(cell, tiling, Map(vol), [], outer=False)), None) is None
+    site = L.choose_label_site(cell, tiling, Map(vol), [])
+    assert site is not None and site.outer and site.to_report()["on_outer_face"]
+    # the box's outside: the centre of one of its faces, the normal pointing away from the box
+    assert np.dot(site.center - [30.0, 25.0, 15.0], site.normal) > 10.0
 
 
 def test_face_too_small_gives_none():
@@ -181,7 +186,9 @@ def test_face_too_small_gives_none():
         cp[i, j, k] = (12 * i, 10 * j, 10 * k)
     vol = Volume((1, 1, 1), (_clamped(2, 1),) * 3, cp)
     tiling = tile(vol, (2, 1, 1))
-    assert L.choose_label_site(tiling.cell((0, 0, 0)), tiling, Map(vol), []) is None
+    cell = tiling.cell((0, 0, 0))
+    assert next(iter(L.label_sites(cell, tiling, Map(vol), [], outer=False)), None) is None
+    assert next(iter(L.label_sites(cell, tiling, Map(vol), [], text="p0-0-0-0-0-0-0", outer=True)), None) is None
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -119,3 +119,47 @@ def test_small_pieces_merge_one_at_a_time_so_neighbours_of_small_pieces_still_co
     assert abs(out["p0-0-0"].volume() - 1075.0) < 1e-6
     assert len(out["p0-0-0"].decompose()) == 1
     assert [r["reason"] for r in records] == ["small piece"] * 3
+
+
+# --- face clearance ---------------------------------------------------------------------------------------------------
+def _cells_and_shrunk(cuts, c):
+    """Box cells between x cuts, and the same cells with every inner face set back by c / 2 (as compose does)."""
+    cells, shrunk = {}, {}
+    for i in range(len(cuts) - 1):
+        lo, hi = cuts[i], cuts[i + 1]
+        pid = f"p{i}-0-0"
+        cells[pid] = box([lo, -20, -20], [hi, 20, 20])
+        shrunk[pid] = box([lo + (c / 2 if i > 0 else 0.0), -20, -20],
+                          [hi - (c / 2 if i < len(cuts) - 2 else 0.0), 20, 20])
+    return cells, shrunk
+
+
+def test_face_clearance_sets_mesh_pieces_apart_and_the_volumes_add_up(ball):
+    from volpuzzle.meshcut import set_back_faces
+
+    c = 0.3
+    cells, shrunk = _cells_and_shrunk([-12, 0.7, 12], c)
+    pieces, merges = merge_fragments(intersect_pieces(cells, ball))
+    out, taken = set_back_faces(pieces, cells, shrunk, merges, c)
+    a, b = out["p0-0-0"], out["p1-0-0"]
+    assert a.min_gap(b, 1.0) == pytest.approx(c, abs=1e-6)  # apart by the clearance, half on each side
+    assert all(closed_one_body(p) for p in out.values())
+    # what the clearance took is the contact (the ball's section at x = 0.7) times the clearance
+    assert taken == pytest.approx(np.pi * (10.0 ** 2 - 0.7 ** 2) * c, rel=0.03)
+    assert total(out) + taken == pytest.approx(ball.volume(), rel=1e-9)
+
+
+def test_face_clearance_keeps_a_merged_fragment_joined_to_its_piece(torus):
+    from volpuzzle.meshcut import set_back_faces
+
+    c = 0.3
+    cells, shrunk = _cells_and_shrunk([-20, -3, 3, 20], c)
+    pieces, merges = merge_fragments(intersect_pieces(cells, torus))
+    assert [r["reason"] for r in merges] == ["fragment"]
+    out, taken = set_back_faces(pieces, cells, shrunk, merges, c)
+    assert all(closed_one_body(p) for p in out.values())  # the fragment still holds to the piece that took it
+    names = sorted(out)
+    for i, x in enumerate(names):
+        for y in names[i + 1:]:
+            assert out[x].min_gap(out[y], 1.0) >= 0.9 * c, (x, y)
+    assert 0 < taken and total(out) + taken == pytest.approx(torus.volume(), rel=1e-9)

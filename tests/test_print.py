@@ -335,3 +335,71 @@ def test_a_build_whose_facing_cut_faces_close_is_refused_before_it_is_written(tm
                                             r"each other 0.000 mm apart .*expected the face clearance 0.15 mm"):
         volpuzzle.build(spec, jobs=1)
     assert not (tmp_path / "out" / "sphere-shell").exists()
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# loose dowels printed flat
+
+
+def test_loose_dowels_lie_flat_on_the_plate_on_a_flat_that_holds_them():
+    import manifold3d as m3
+
+    from volpuzzle.layout import MIN_BED_MM2, bed_contact, lay_dowels_flat, layout
+
+    class Joint:  # the one field lay_dowels_flat reads of a joint
+        def __init__(self, direction):
+            self.direction = np.asarray(direction, float)
+
+    dirs = [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.6, 0.0, 0.8)]
+    dowels = []
+    for k, d in enumerate(dirs):
+        rod = m3.Manifold.cylinder(12.0, 2.5, 2.5, 24).translate((0.0, 0.0, -6.0))
+        frame = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d)
+        frame[:3, 3] = (30.0 * k, 5.0, 7.0)
+        dowels.append((f"dowel-{k:02d}", G.to_trimesh(rod.transform(frame[:3, :]))))
+    flat, poses = lay_dowels_flat(dowels, [Joint(d) for d in dirs])
+    places, _ = layout(flat, (250, 210), 4.0, poses=poses, margin=10.0)
+    for (name, mesh), (_, before), d, place in zip(flat, dowels, dirs, places, strict=True):
+        axis = place.transform[:3, :3] @ np.asarray(d)
+        assert abs(axis[2]) < 1e-6, name  # the dowel's axis lies in the plate
+        assert 0 < poses[name].base_cut_mm <= 0.6  # a shallow flat along its side, not a deep one
+        assert bed_contact(mesh.vertices, mesh.faces, place.transform) >= MIN_BED_MM2
+        lost = before.volume - mesh.volume
+        assert 0 < lost < 0.05 * before.volume  # the dowel keeps its size: only the flat is taken off
+        G.check_solid(mesh, name)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# every piece labelled: a small mesh model (whose cut faces lie partly off the pieces) and a small shell (whose cut
+# faces are as thin as the wall)
+
+
+@pytest.mark.slow
+def test_small_mesh_build_labels_every_piece_and_keeps_the_face_clearance(tmp_path):
+    from helpers_build import example_spec
+
+    import volpuzzle
+
+    report = volpuzzle.build(example_spec("gear-cylinder", tmp_path, tolerance=0.2), jobs=1)
+    labels = {p["id"]: p["label"] for p in report["pieces"]}
+    assert all(v.get("text") for v in labels.values()), labels
+    printable = report["checks"]["printability"]
+    assert printable["unlabelled"] == [] and not printable["failures"]
+    # neighbours apart by the clearance, and the volume it took is in the volume check
+    assert report["checks"]["face_clearance_mm"] == 0.15 and report["checks"]["face_clearance_mm3"] > 0
+    assert printable["median_face_gap_mm"] == pytest.approx(0.15, rel=0.05)
+    assert abs(report["checks"]["volume_error"]) < 0.005
+
+
+@pytest.mark.slow
+def test_small_shell_build_labels_every_piece(tmp_path):
+    from helpers_build import example_spec
+
+    import volpuzzle
+
+    report = volpuzzle.build(example_spec("sphere-shell", tmp_path, tolerance=0.4, grid=[3, 4, 1]), jobs=1)
+    labels = {p["id"]: p["label"] for p in report["pieces"]}
+    assert all(v.get("text") for v in labels.values()), labels
+    assert report["checks"]["printability"]["unlabelled"] == []
+    # the wall is too thin for text on its cut faces of the poles' pieces: the hidden inside of the shell holds them
+    assert any(v.get("on_outer_face") for v in labels.values())

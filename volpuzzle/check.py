@@ -634,7 +634,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
     if labels_on and unlabelled:
         warnings.append(f"pieces {', '.join(unlabelled)} carry no label")
     spec_out = (report.get("spec") or {}).get("output") or {}
-    # the clearance the build applied (none for a mesh model yet), else the spec's
+    # the clearance the build applied (none with joints.space: domain), else the spec's
     face_clearance = float((report.get("checks") or {}).get("face_clearance_mm", spec_out.get("face_clearance", 0.0))
                            or 0.0)
     joints = report.get("joints") or []

@@ -9,8 +9,12 @@ outer faces of D never are. On each candidate, centres on a grid of face fractio
 either in-face parameter) are tried; the text's height is the largest that keeps its box a margin inside the face
 (projected on the tangent plane at the centre) and R = reach + clearance + 1 mm from every joint axis of the piece
 (pin, hole or dowel, whatever face it is on), capped at MAX_HEIGHT_MM. Faces that carry no joint win if any of them
-holds a label; otherwise the best spot away from the joint circles on a jointed face is used. Within a class: larger
-text, then nearer the face centre, then the first in face order. Too small for MIN_STROKE_MM strokes: no label (None).
+holds a label; otherwise the best spot away from the joint circles on a jointed face is used; then D's outer faces,
+those that look into the model first (the inside of a shell, out of sight once assembled). Within a class: larger
+text, then nearer the face centre, then the first in face order. Too small for the stroke asked (MIN_STROKE_MM, then
+the finer STROKES_MM): no site. A mesh model's piece covers only part of its cage cell's faces: label_piece then
+searches again on the piece's real outline on each face (_BodyFaces), and its caller may mirror the id on the bed side
+(engrave_bed) as the last resort.
 
 Curvature. The text prism is built in the tangent frame at the site and bent onto the face: its floor follows the
 surface measured under the text (from the body mesh itself by ray casting, falling back to F), lowered by
@@ -31,6 +35,8 @@ from .geometry import is_ok
 DEPTH_MM = 0.4
 MIN_STROKE_MM = 0.8  # narrowest stem a 0.4 mm nozzle prints as two lines
 FINE_STROKE_MM = 0.6  # the fallback: one and a half lines, still a clean groove
+HAIR_STROKE_MM = 0.4  # the last resort: one nozzle width, the narrowest groove that still prints as a groove
+STROKES_MM = (MIN_STROKE_MM, FINE_STROKE_MM, HAIR_STROKE_MM)
 MAX_HEIGHT_MM = 8.0
 MARGIN_MM = 1.0  # text box to face edge
 JOINT_CLEAR_MM = 1.0  # text box to a joint's pin/hole surface
@@ -211,6 +217,7 @@ class LabelSite:
     grid_y: np.ndarray
     heights: np.ndarray
     error_mm: float
+    outer: bool = False
 
     @property
     def right(self):
@@ -226,7 +233,8 @@ class LabelSite:
         """The label as report.json can list it: face like 'v+' (the cell's max v face), sizes in mm."""
         return {"text": self.text, "face": "uvw"[self.face[0]] + ("+" if self.face[1] > 0 else "-"),
                 "height_mm": round(float(self.height_mm), 3), "center_mm": [round(float(x), 4) for x in self.center],
-                "normal": [round(float(x), 6) for x in self.normal], "on_joint_face": bool(self.has_joint)}
+                "normal": [round(float(x), 6) for x in self.normal], "on_joint_face": bool(self.has_joint),
+                "on_outer_face": bool(self.outer)}
 
 
 def _face_joints(face, joints):
@@ -405,8 +413,11 @@ def _face_samples(cell, fmap, a, side):
     return faces[key]
 
 
-def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM):
-    """Every (centre, direction) on one face -> list of (sort key, site arguments)."""
+def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM, rank=None,
+                region=None):
+    """Every (centre, direction) on one face -> list of (sort key, site arguments). rank: the face's class in the
+    site rule (default: has_joint); region: a _BodyFaces of the piece, whose real outline on the face then keeps the
+    text in as the face's own edge does, and whose centres must lie on the piece."""
     b, c = _cyclic(a)
     ink_w, ink_h = _ink(text)
     aspect = ink_w / ink_h
@@ -419,10 +430,16 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     x0_local = x0 - origin
     edge = edge - origin
     # the face's outline keeps the text MARGIN_MM inside it; an axis point keeps it R away, but only within reach
-    # of the face along the normal
+    # of the face along the normal: below it, a groove `depth` deep leaves R - r - clearance = JOINT_CLEAR_MM of
+    # wall to a hole whose axis lies deeper than depth + R, so such an axis (one running along the face) is no bar
+    on_piece = good
+    if region is not None:
+        outline, covered = region.on_face(x0, normals)
+        edge = np.concatenate([edge, outline - origin])
+        on_piece = good & covered
     ko = _keep_out(np.concatenate([edge, axes_pts - origin]),
                    np.concatenate([np.full(len(edge), MARGIN_MM), axes_r]),
-                   np.concatenate([np.full(len(edge), -np.inf), -(depth + 2.0 + axes_r)]),
+                   np.concatenate([np.full(len(edge), -np.inf), -(depth + axes_r)]),
                    np.concatenate([np.full(len(edge), np.inf), TOP_MM + 2.0 + axes_r]))
     off_centre = np.round(np.hypot(fb - 0.5, fc - 0.5), 6)
     # both text directions (up along either in-face parameter) at once: centres k = 0 .. n-1, then n .. 2n-1
@@ -430,7 +447,7 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     normals2, x0_2 = np.concatenate([normals, normals]), np.concatenate([x0_local, x0_local])
     up = tangent - np.einsum("ki,ki->k", tangent, normals2)[:, None] * normals2
     size = np.linalg.norm(up, axis=1)
-    ok = np.concatenate([good, good]) & (size > 1e-12)
+    ok = np.concatenate([on_piece, on_piece]) & (size > 1e-12)
     up = up / np.maximum(size, 1e-300)[:, None]
     right = np.cross(up, normals2)
     # the face's outline and the joint axes, seen along the normal
@@ -442,7 +459,7 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
         # upright text where the face allows it: up turned to the global +z, so labels read alike
         if u[2] < -1e-9 or (abs(u[2]) <= 1e-9 and (u[1] < -1e-9 or (abs(u[1]) <= 1e-9 and u[0] < 0))):
             u = -u
-        key = (has_joint, -round(float(height[j]), 3), off_centre[i], order, k, i)
+        key = (int(has_joint if rank is None else rank), -round(float(height[j]), 3), off_centre[i], order, k, i)
         out.append((key, (x0[i], normals[i], u, float(height[j]), uvw[i])))
     return out
 
@@ -543,7 +560,7 @@ def _axis_grid(half):
     return np.linspace(-half, half, max(n, 3))
 
 
-def _make_site(cell, fmap, a, side, has_joint, args, text):
+def _make_site(cell, fmap, a, side, has_joint, args, text, outer=False):
     """Measure the surface under the text at one candidate -> LabelSite, or None when it is too curved there."""
     center, normal, up, height, uvw0 = args
     ink_w, ink_h = _ink(text)
@@ -570,40 +587,83 @@ def _make_site(cell, fmap, a, side, has_joint, args, text):
         arr.setflags(write=False)
         ro.append(arr)
     return LabelSite(ro[0], ro[1], ro[2], float(height), (int(a), int(side)), ro[3], bool(has_joint), str(text),
-                     ro[4], ro[5], ro[6], err)
+                     ro[4], ro[5], ro[6], err, bool(outer))
 
 
-def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM, tries=64, avoid=None):
+_CENTRES_OF = weakref.WeakKeyDictionary()  # fmap -> {domain: the model's centre (3,)}
+
+
+def _model_centre(tiling, fmap):
+    """Mean of F over a 5 x 5 x 5 grid of the domain (3,): which way a face looks, into the model or out of it."""
+    key = tuple(np.asarray(tiling.domain, float).ravel())
+    try:
+        known = _CENTRES_OF.setdefault(fmap, {})
+    except TypeError:
+        known = {}
+    if key not in known:
+        lo, hi = np.asarray(tiling.domain, float)
+        t = np.linspace(0.1, 0.9, 5)
+        uvw = lo + np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)
+        known[key] = np.asarray(fmap.evaluate(uvw)).mean(axis=0)
+    return known[key]
+
+
+def _outer_faces(cell, tiling, fmap):
+    """The cell's faces on D's boundary (none across a periodic seam) -> list of (axis, side, hidden): hidden when the
+    face looks into the model (the inside of a shell, out of sight once assembled) rather than out of it."""
+    shared = {(f.axis, side) for f, side in tiling.faces_of(tuple(cell.index))}
+    centre = _model_centre(tiling, fmap)
+    out = []
+    for a in range(3):
+        if a in tuple(tiling.periodic):
+            continue
+        for side in (-1, +1):
+            if (a, side) in shared:
+                continue
+            _, _, _, x0, jac, _ = _face_samples(cell, fmap, a, side)
+            normals = _outward(jac, a, side, int(getattr(fmap, "orientation", 1) or 1))
+            look = float(np.einsum("ni,ni->n", normals, centre - x0).mean())
+            out.append((a, side, look > 0.0))
+    return out
+
+
+def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM, tries=64, avoid=None,
+                region=None, outer=True):
     """The places for the cell's label, best first (rule in the module docstring): LabelSites that hold `text`
-    (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured; none whose
-    normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate)."""
+    (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured per class; none
+    whose normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate).
+    region: the piece's _BodyFaces, to keep the text on the piece's real faces (a mesh model's piece covers only part
+    of its cage cell's faces). outer: also D's outer faces, after every inner one (the hidden ones first)."""
     text = str(text if text is not None else cell.id)
     if not _outline(text)[0]:
         return
     index = tuple(cell.index)
     axes_pts, axes_r = _joint_axes(index, joints)
-    faces = [(order, face, side, bool(_face_joints(face, joints)))
-             for order, (face, side) in enumerate(tiling.faces_of(index))]
-    # Jointless faces rank first whatever the height, so the jointed ones are measured only when none of the
-    # jointless candidates holds the text: the same order as sorting all of them at once.
-    for has_joint in (False, True):
+    # classes in the order they are tried: inner faces without a joint, with one; outer faces hidden, in sight
+    faces = [(int(hj), order, face.axis, side, hj)
+             for order, (face, side) in enumerate(tiling.faces_of(index)) for hj in [bool(_face_joints(face, joints))]]
+    # A class is measured only when none of the earlier ones holds the text: the same order as sorting all at once.
+    for rank in range(4 if outer else 2):
+        if rank == 2:  # the outer faces are looked at only when no inner face held the text
+            n = len(faces)
+            faces += [(2 if hidden else 3, n + k, a, side, False)
+                      for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
         cands = []
-        for order, face, side, hj in faces:
-            if hj != has_joint:
+        for r, order, a, side, hj in faces:
+            if r != rank:
                 continue
-            for key, args in _candidates(cell, fmap, face.axis, side, hj, axes_pts, axes_r, text, depth, order,
-                                         stroke):
-                cands.append((key, face.axis, side, hj, args))
+            for key, args in _candidates(cell, fmap, a, side, hj, axes_pts, axes_r, text, depth, order, stroke,
+                                         rank=rank, region=region):
+                cands.append((key, a, side, hj, args))
         if avoid is not None:
             cands = [c for c in cands if float(np.dot(c[4][1], avoid)) <= _AVOID_COS]
         cands.sort(key=lambda c: c[0])
+        # each class measures `tries` candidates of its own: a crowded inner face whose small spots turn out too
+        # curved must not use up the tries of a clear face further down the list
         for _, a, side, hj, args in cands[:tries]:
-            site = _make_site(cell, fmap, a, side, hj, args, text)
+            site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
             if site is not None:
                 yield site
-        tries -= min(tries, len(cands))
-        if not tries:
-            break
 
 
 def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM):
@@ -616,13 +676,20 @@ def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, str
 # Engraving
 
 
-def _measured_heights(body, site):
+def _measured_heights(body, site, arrays=None):
     """Heights (ny, nx) of the body's own surface above the site's tangent plane (its printed surface, not F), by a
     ray down the normal at every grid point; F's height where the ray finds nothing near it."""
-    return _measured(body, site)[0]
+    return _measured(body, site, arrays)[0]
 
 
-def _measured(body, site):
+def _mesh_arrays(body):
+    """A Manifold's vertices (n, 3) float64 and triangles (m, 3) int64."""
+    mesh = body.to_mesh64()
+    return (np.asarray(mesh.vert_properties, dtype=float)[:, :3],
+            np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3))
+
+
+def _measured(body, site, arrays=None):
     """_measured_heights, and (ny, nx) bool: where the ray found the body's surface near F's (False where the face
     of F lies off the body, as a cage's face outside a mesh model does).
 
@@ -633,9 +700,8 @@ def _measured(body, site):
     xs, ys = np.asarray(site.grid_x, float), np.asarray(site.grid_y, float)
     frame = site.frame()
     span = float(h.max() - h.min()) + 2.0
-    mesh = body.to_mesh64()
-    verts = (np.asarray(mesh.vert_properties, dtype=float)[:, :3] - frame[:, 3]) @ frame[:, :3]
-    faces = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
+    verts, faces = arrays if arrays is not None else _mesh_arrays(body)
+    verts = (verts - frame[:, 3]) @ frame[:, :3]
     corners = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
     lo = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
     hi = np.maximum(np.maximum(corners[0], corners[1]), corners[2])
@@ -674,7 +740,7 @@ def _measured(body, site):
     return h, near
 
 
-def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM):
+def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
     `depth` mm into it at `site` -> Manifold.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
@@ -689,7 +755,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
-    h = _measured_heights(body, site)
+    h = _measured_heights(body, site, arrays)
     gy, gx = np.gradient(h, ys, xs)
     # depth along the surface normal: a slope g lowers the floor by depth * sqrt(1 + g^2) measured vertically
     floor = h - depth * np.sqrt(1.0 + gx ** 2 + gy ** 2)
@@ -746,33 +812,117 @@ def _longest_edge(solid):
     return float(max(np.linalg.norm(v[t[:, k]] - v[t[:, (k + 1) % 3]], axis=1).max() for k in range(3)))
 
 
+class _BodyFaces:
+    """The piece's own triangles, to find which part of a face of F it really covers (a mesh model's piece is its cage
+    cell cut by the mesh: most of the cell's faces lie off it). Built from a Manifold in mm."""
+
+    TOL_MM = 0.3  # a triangle this close to the face (and parallel to it) lies on it: tessellation and sampling error
+    PARALLEL_COS = float(np.cos(np.radians(15.0)))
+
+    def __init__(self, body, arrays=None):
+        self.verts, self.tris = arrays if arrays is not None else _mesh_arrays(body)
+        a, b, c = (self.verts[self.tris[:, k]] for k in range(3))
+        cross = np.cross(b - a, c - a)
+        size = np.linalg.norm(cross, axis=1)
+        self.centroids = (a + b + c) / 3.0
+        self.normals = cross / np.maximum(size, 1e-300)[:, None]
+        self.keep = size > 1e-12
+
+    def on_face(self, x0, normals):
+        """For a face sampled at points x0 (n, 3) with outward normals (n, 3) (0 where collapsed): the outline of the
+        piece's part of it, points (m, 3) at most ~_SAMPLE_MM apart, and which samples lie on the piece (n,) bool."""
+        from scipy.spatial import cKDTree
+
+        good = np.flatnonzero(np.any(normals != 0, axis=1))
+        covered = np.zeros(len(x0), bool)
+        if not len(good) or not self.keep.any():
+            return np.zeros((0, 3)), covered
+        tree = cKDTree(x0[good])
+        spacing = float(np.median(tree.query(x0[good], k=2)[0][:, 1])) if len(good) > 1 else 1.0
+        dist, near = tree.query(self.centroids)
+        p, n = x0[good][near], normals[good][near]
+        on = (self.keep & (dist < 2.0 * spacing + 1.0)
+              & (np.abs(np.einsum("ni,ni->n", self.centroids - p, n)) < self.TOL_MM)
+              & (np.einsum("ni,ni->n", self.normals, n) > self.PARALLEL_COS))
+        tris = self.tris[on]
+        if not len(tris):
+            return np.zeros((0, 3)), covered
+        edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+        uniq, count = np.unique(edges, axis=0, return_counts=True)
+        border = uniq[count == 1]
+        p0, p1 = self.verts[border[:, 0]], self.verts[border[:, 1]]
+        steps = np.maximum(1, np.ceil(np.linalg.norm(p1 - p0, axis=1) / _SAMPLE_MM)).astype(np.int64)
+        seg = np.repeat(np.arange(len(border)), steps)
+        t = ((np.arange(len(seg)) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[seg])[:, None]
+        outline = p0[seg] + t * (p1[seg] - p0[seg])
+        # which samples the piece covers: seen along the face's mean normal, inside one of its triangles there
+        mean = normals[good].mean(axis=0)
+        mean /= max(np.linalg.norm(mean), 1e-300)
+        e1 = np.cross(mean, [1.0, 0.0, 0.0] if abs(mean[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(mean, e1)
+        basis = np.stack([e1, e2], 1)
+        a, b, c = (self.verts[tris[:, k]] @ basis for k in range(3))
+        q = x0[good] @ basis
+        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+        e1x, e1y, e2x, e2y = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1], c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
+        det = e1x * e2y - e1y * e2x
+        flat = np.abs(det) > 1e-12
+        hit = np.zeros(len(good), bool)
+        for start in range(0, len(tris), 4096):
+            sl = slice(start, start + 4096)
+            qx = q[:, None, 0] - a[None, sl, 0]
+            qy = q[:, None, 1] - a[None, sl, 1]
+            inbox = ((q[:, None, 0] >= lo[None, sl, 0] - 1e-9) & (q[:, None, 0] <= hi[None, sl, 0] + 1e-9)
+                     & (q[:, None, 1] >= lo[None, sl, 1] - 1e-9) & (q[:, None, 1] <= hi[None, sl, 1] + 1e-9)
+                     & flat[None, sl])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                wb = (qx * e2y[None, sl] - qy * e2x[None, sl]) / det[None, sl]
+                wc = (e1x[None, sl] * qy - e1y[None, sl] * qx) / det[None, sl]
+            hit |= (inbox & (wb >= -1e-9) & (wc >= -1e-9) & (wb + wc <= 1 + 1e-9)).any(axis=1)
+        covered[good] = hit
+        return outline, covered
+
+
 def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, what=None, texts=None, avoid=None,
                 tries=6):
     """Engrave the piece's id where it can be read -> (Manifold, LabelSite or None, note): the body unchanged and
     a note saying why when no place holds it. Tried in turn: each text of `texts` (default: just `text`, the piece
-    id), first at MIN_STROKE_MM then FINE_STROKE_MM strokes, on the best `tries` sites; a site is passed over when
-    its face faces `avoid` (3,) (the bed), lies off the body (a cage's face outside a mesh) or the engraving fails."""
+    id), at each stroke of STROKES_MM, on the best `tries` sites; a site is passed over when its face faces `avoid`
+    (3,) (the bed), lies off the body (a cage's face outside a mesh) or the engraving fails. When sites were found
+    off the body, the search runs again on the piece's real faces (_BodyFaces)."""
     texts = list(texts) if texts else [str(text if text is not None else cell.id)]
     reasons = []
-    for stroke in (MIN_STROKE_MM, FINE_STROKE_MM):
-        for t in texts:
-            for site in label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
-                                    avoid=avoid):
-                if tries <= 0:
-                    break
-                tries -= 1
-                if float(np.mean(_measured(body, site)[1])) < 0.98:
-                    reasons.append("off the piece")
-                    continue
-                try:
-                    out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke)
-                except GeometryError as e:
-                    reasons.append(str(e))
-                    continue
-                return out, site, None
-            tries = max(tries, 3)  # each fallback gets a few sites of its own
+    region = None
+    budget = tries
+    arrays = _mesh_arrays(body)  # the body's triangles, once for every site measured on it
+    for _ in range(2):
+        tries = budget
+        off = False
+        for stroke in STROKES_MM:
+            for t in texts:
+                for site in label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
+                                        avoid=avoid, region=region):
+                    if tries <= 0:
+                        break
+                    tries -= 1
+                    if float(np.mean(_measured(body, site, arrays)[1])) < 0.98:
+                        reasons.append("off the piece")
+                        off = True
+                        continue
+                    try:
+                        out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke,
+                                      arrays=arrays)
+                    except GeometryError as e:
+                        reasons.append(str(e))
+                        continue
+                    return out, site, None
+                tries = max(tries, 3)  # each fallback gets a few sites of its own
+        if not off or region is not None:
+            break
+        region = _BodyFaces(body, arrays)
     if not reasons:
-        return body, None, "no inner face large enough and clear of the joints"
+        return body, None, "no face large enough and clear of the joints"
     return body, None, "no site held it: " + "; ".join(sorted(set(reasons))[:3])
 
 
@@ -793,8 +943,8 @@ def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
         return body, None
     x0, y0, x1, y1 = inner.bounds()
     full = float(inner.area())
-    for stroke in (MIN_STROKE_MM, FINE_STROKE_MM):
-        for height in (MAX_HEIGHT_MM, 6.0, 5.0, 4.0, 3.0, 2.5):
+    for stroke in STROKES_MM:
+        for height in (MAX_HEIGHT_MM, 6.0, 5.0, 4.0, 3.0, 2.5, 2.0, 1.7):
             cs = text_cross_section(text, height, stroke)
             if cs is None:
                 continue

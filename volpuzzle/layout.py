@@ -192,11 +192,16 @@ def bed_contact(vertices, faces, transform=None, solid=None):
     return float(solid.slice(float(v[:, 2].min()) + FIRST_SLICE_MM).area())
 
 
-def plan_pose(mesh, pin_directions=(), hole_openings=()):
-    """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it)."""
+def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None):
+    """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it). down (3,): the assembled
+    direction to put on the bed, when the caller has chosen it (a dowel on its side)."""
     from .geometry import solid_of
 
-    (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
+    if down is None:
+        (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
+    else:
+        down = np.asarray(down, float) / max(float(np.linalg.norm(down)), 1e-300)
+        pins_down = pins_up = holes_down = 0
     rot, hull_points = _orient(mesh, down=down)
     footprint = _hull_area(trimesh.transform_points(hull_points, rot)[:, :2])
     target = max(BASE_TARGET[0], BASE_TARGET[1] * footprint)
@@ -213,6 +218,31 @@ def plan_pose(mesh, pin_directions=(), hole_openings=()):
             if a >= target:
                 break
     return Pose(rot, np.asarray(down, float), depth, area, len(pin_directions), pins_up, pins_down, holes_down)
+
+
+def dowel_pose(mesh, axis):
+    """A loose dowel laid flat, its axis (3,) horizontal, as makers print them (the layers run along the dowel, so it
+    does not snap at a layer line, and it prints round across its whole length) -> Pose, with the shallow base cut a
+    round side needs to hold on the bed. The side put down is the perpendicular to the axis nearest to the assembled
+    -z (or -y), so the choice is the same for the same dowel."""
+    axis = np.asarray(axis, float) / max(float(np.linalg.norm(axis)), 1e-300)
+    for ref in ((0.0, 0.0, -1.0), (0.0, -1.0, 0.0)):
+        down = np.asarray(ref) - float(np.dot(ref, axis)) * axis
+        if np.linalg.norm(down) > 0.1:
+            break
+    return plan_pose(mesh, down=down)
+
+
+def lay_dowels_flat(dowels, joints, what="dowel"):
+    """Loose dowels [(name, Trimesh in assembled mm)], one per joint of `joints` in the same order, each with the
+    flat its dowel_pose asks for cut along its side -> ([(name, Trimesh)], {name: Pose})."""
+    out, poses = [], {}
+    for (name, mesh), j in zip(dowels, joints, strict=True):
+        pose = dowel_pose(mesh, j.direction)
+        cut, _ = base_cut(mesh, pose, f"{what} {name}")
+        out.append((name, cut))
+        poses[name] = pose
+    return out, poses
 
 
 def base_cut(mesh, pose, what="piece"):

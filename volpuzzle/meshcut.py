@@ -19,6 +19,7 @@ its pins at once, as long as that stays within MAX_TILT_DEG of the patch there. 
 wall) is checked against the real pieces, cropped around the patch, instead of against the whole mesh.
 """
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,7 @@ __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSiz
            "joint_graph_problem", "plan_splits", "compose_in_mesh"]
 
 MAX_PINS = 3  # pins and holes per piece, as in the paper
+SLIVER_SHARE = 0.002  # of a piece's volume: what a face clearance may cut off it as slivers
 _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
@@ -664,9 +666,91 @@ def add_joints(pieces, cells, joints):
     return out
 
 
-def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
+# --- face clearance -------------------------------------------------------------------------------------------------
+def set_back_faces(cut, cells, shrunk, merges, clearance):
+    """{id: Manifold} merged pieces (cut by the mesh, joints not yet added) -> ({id: Manifold}, mm^3 taken): every
+    face a piece shares with another set back by half of `clearance`, as compose sets back a volume's cut faces.
+
+    cells: {cell id: Manifold} the cage cells as cut (faces not set back); shrunk: the same cells composed with the
+    face clearance. A piece made of one cell is that piece within its shrunk cell. A piece that took in fragments of
+    other cells keeps, besides each member cell's shrunk part, the layer between two of its own parts that touch
+    (over their contact: where both parts, moved by the clearance across it, overlap), so it stays one solid;
+    should it still come apart, it is left as it was (its neighbours then keep their half of the gap)."""
+    from .geometry import boolean
+
+    members = {pid: [pid] for pid in cut}
+    for r in merges:
+        if r.get("to") in members and r.get("from") in cells and r["from"] not in members[r["to"]]:
+            members[r["to"]].append(r["from"])
+    out, taken = {}, 0.0
+    for pid, body in cut.items():
+        what = f"{pid} (face clearance)"
+        keep = shrunk[members[pid][0]]
+        for x in members[pid][1:]:
+            keep = boolean(keep, shrunk[x], "union", what)
+        if len(members[pid]) > 1:
+            parts = {x: boolean(body, cells[x], "intersection", what) for x in members[pid]}
+            names = members[pid]
+            for i, x in enumerate(names):
+                for y in names[i + 1:]:
+                    n = _contact_direction(parts[x], parts[y])
+                    if n is None:
+                        continue
+                    # each part moved by the clearance across the common face: where both moved copies overlap is
+                    # the column over their contact only (not over x's faces towards other pieces), a clearance on
+                    # either side, so it overlaps both shrunk cells instead of meeting them face to face (coincident
+                    # faces leave slivers that float32 files turn into non-manifold edges)
+                    reach = (boolean(parts[x].translate(list(clearance * n)),
+                                     parts[y].translate(list(-clearance * n)), "intersection", what))
+                    keep = boolean(keep, reach, "union", what)
+        new = _kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()))
+        if new is None:
+            print(f"warning: output.face_clearance: piece {pid} would come apart with its faces set back (a thin "
+                  f"neck along a cut face); it keeps its faces, its neighbours their half of the gap",
+                  file=sys.stderr)
+            new = body
+        taken += float(body.volume()) - float(new.volume())
+        out[pid] = new
+    return out, taken
+
+
+def _kept_bodies(solid, count, volume):
+    """The set-back piece with as many bodies as before: where the mesh grazes a cut face, a sliver thinner than the
+    half clearance parts from the piece; slivers of at most SLIVER_SHARE of the piece's volume (0.2 mm^3 at least)
+    are dropped (the clearance takes them). -> Manifold, or None when what parts is more than a sliver."""
+    if solid.is_empty():
+        return None
+    parts = sorted(solid.decompose(), key=lambda b: -b.volume())
+    if len(parts) <= count:
+        return solid if len(parts) == count else None
+    extra = sum(float(b.volume()) for b in parts[count:])
+    if extra > max(0.2, SLIVER_SHARE * volume):
+        return None
+    kept = parts[0]
+    for b in parts[1:count]:
+        kept = kept + b
+    return kept
+
+
+def _contact_direction(a, b):
+    """Mean unit normal (3,) of the patch where Manifolds a and b touch, from a into b, or None when they do not."""
+    from .geometry import to_trimesh
+
+    ma, mb = to_trimesh(a), to_trimesh(b)
+    masks = _shared_faces([ma, mb])
+    tri = masks.get((0, 1))
+    if tri is None:
+        return None
+    n = (ma.face_normals[tri] * ma.area_faces[tri][:, None]).sum(axis=0)
+    size = float(np.linalg.norm(n))
+    return n / size if size > 0 else None
+
+
+def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_clearance=0.0):
     """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints placed on the
-    final contacts, then pins and holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict)"""
+    final contacts, the faces between pieces set back by half of face_clearance each (set_back_faces), then pins and
+    holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict; its "face_clearance_mm3" is the
+    volume the clearance took)"""
     from .compose import Piece, compose
     from .geometry import from_trimesh, to_trimesh
 
@@ -689,7 +773,14 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
             if problem and "loose" not in joint_spec.allow:
                 raise GeometryError(problem)
     pieces = []
+    taken = 0.0
     with timer("compose", progress):
+        if face_clearance > 0:
+            # the contacts, merges and joints above need the faces closed (they are found where pieces touch):
+            # the faces are set back only now, before the pins and holes, which keep their own clearances
+            shrunk = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, face_clearance=face_clearance)
+            cut, taken = set_back_faces(cut, {p.id: from_trimesh(p.mesh, p.id) for p in bodies},
+                                        {p.id: from_trimesh(p.mesh, p.id) for p in shrunk}, merges, face_clearance)
         jointed = add_joints(cut, cells, joints)
         for pid in sorted(cut, key=lambda k: cells[k]):
             mesh = to_trimesh(jointed[pid])
@@ -697,7 +788,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress):
                                 int(len(mesh.faces))))
     report = {"cells_without_piece": sorted(set(cells) - set(cut)), "merged": merges, "contacts": records,
               "contacts_touching": len(records), "contacts_with_room": sum(1 for r in records if r["room"]),
-              "contacts_pinned": sum(1 for r in records if r["pinned"])}
+              "contacts_pinned": sum(1 for r in records if r["pinned"]), "face_clearance_mm3": taken}
     return pieces, joints, plan, report
 
 

@@ -118,7 +118,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     from .check import assert_passed, check_printability
     from .export import check_target, piece_colors, pin_triangles, spec_inputs, write_build
     from .joint import dowel_parts, require_pieces_joined
-    from .layout import check_plate, plates_and_preview
+    from .layout import check_plate, lay_dowels_flat, plates_and_preview
     from .report import build_report, fit, require_printable
     from .spec import load_spec, with_overrides
     from .texture import build_texture
@@ -134,7 +134,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     assert_passed(s.checks)
     for warning in fit(spec, s.joints, s.face_clearance)["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
-    dowels = dowel_parts(s.joints) if spec.joints.style == "dowel" else []
+    dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None)
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
@@ -144,7 +144,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
             texture, texture_report = build_texture(spec, s.model.volume, s.pieces, s.tolerance)
     with timer("layout", progress):
         placements, plates, extras = plates_and_preview(spec, s.pieces, dowels, s.joints, colors, pins, texture,
-                                                        s.poses, assembly.get("steps"))
+                                                        {**s.poses, **dowel_poses}, assembly.get("steps"))
     report = build_report(spec, s, assembly, placements, plates, texture_report, timer.timings)
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
@@ -161,18 +161,12 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
 
 def _face_clearance(spec, s):
-    """mm of output.face_clearance that can be applied (0 with pins built in the domain or a mesh model, warned)."""
+    """mm of output.face_clearance that can be applied (0 with pins built in the domain, warned)."""
     clearance = spec.output.face_clearance
     if clearance > 0 and s.joints and spec.joints.space == "domain":
         # pins built in the domain are cut on the cell's own parameter box, whose faces are not set back
         print(f"warning: output.face_clearance: not applied with joints.space: domain (got {clearance:g} mm, the "
               f"cut faces meet)", file=sys.stderr)
-        clearance = 0.0
-    if clearance > 0 and s.model.mesh is not None:
-        # Fragments of a cage cell are merged into the neighbour they touch and joints are kept inside two
-        # touching cells: both need the cut faces closed, so the clearance would have to come after them.
-        print(f"warning: output.face_clearance: not applied to a mesh model yet (got {clearance:g} mm, the cut "
-              f"faces meet)", file=sys.stderr)
         clearance = 0.0
     return clearance
 
@@ -188,10 +182,12 @@ def _compose(spec, s, jobs, timer, progress):
     if s.model.mesh is not None:
         from .meshcut import compose_in_mesh
 
-        pieces, joints, plan, mesh_report = compose_in_mesh(s, spec.joints, tolerance, jobs, timer, progress)
+        pieces, joints, plan, mesh_report = compose_in_mesh(s, spec.joints, tolerance, jobs, timer, progress,
+                                                            face_clearance=clearance)
         s = dataclasses.replace(s, joints=joints, plan=plan)
         gaps = sum(gap_volume(j) for j in joints)
-        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps, timer, progress)
+        face_gaps = mesh_report.pop("face_clearance_mm3", 0.0)
+        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress)
     else:
         gaps = sum(gap_volume(j) for j in s.joints)
         for attempt in range(3):
@@ -257,6 +253,6 @@ def validate(spec_path, allow_large=False):
     spec = with_overrides(load_spec(spec_path), allow_large=allow_large)
     s = prepare(spec)
     check_plate(spec, s.tiling, s.fmap)  # build refuses a small plate before meshing: so does this
-    clearance = 0.0 if s.model.mesh is not None else spec.output.face_clearance  # see _face_clearance
+    clearance = spec.output.face_clearance
     return {"name": spec.name, "pieces": math.prod(spec.grid), "joints": len(s.joints), "model": s.model_report,
             "randomize": s.randomize_report, "fit": fit(spec, s.joints, clearance)}
