@@ -32,6 +32,7 @@ __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSiz
            "joint_graph_problem", "plan_splits", "compose_in_mesh"]
 
 MAX_PINS = 3  # pins and holes per piece, as in the paper
+NEAR_CONTACT = 0.5  # a fragment's contact this share of its widest one may win by other merits
 _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
@@ -178,9 +179,16 @@ def merge_fragments(pieces, min_fraction=0.05):
         for c in members:
             if settled[c]:
                 continue
-            for o, a in touch[c].items():
-                key = (a, -min(members[o]), -min(members[c]))
-                if (c, o) not in banned and (best is None or key > best[0]):
+            open_ = {o: a for o, a in touch[c].items() if (c, o) not in banned}
+            widest = max(open_.values(), default=0.0)
+            for o, a in open_.items():
+                # Among the contacts nearly as wide as its widest, a fragment joins the piece that then spans the
+                # fewest cells, a piece rather than another fragment. A piece spread over many cells reaches round
+                # its neighbours and locks them in: a knot cut 2 x 2 x 1 leaves two arcs in every cell, and arcs
+                # chained arc to arc by the widest contact gave pieces that no straight slide takes apart.
+                span = len({bodies[k][0] for k in members[o] + members[c]})
+                key = (a >= NEAR_CONTACT * widest, -span, settled[o], a, -min(members[o]), -min(members[c]))
+                if best is None or key > best[0]:
                     best = (key, c, o)
         if best is None:
             break
