@@ -733,6 +733,157 @@ def _contact_normals(c):
     return n[keep] / size[keep, None], 0.5 * size[keep]
 
 
+EXACT_PLAN_PIECES = 8  # blocks up to this many pieces get the exact search over all their splits (3^n / 2 of them)
+
+
+class _ExactPlan:
+    """The split tree of a small block that pins the most contacts: every split (moving, fixed) of every sub-block is
+    scored by the contacts across it whose mean normal lies within MAX_TILT_DEG of one sliding direction d (and no
+    triangle across faces more than 120 deg against d), the best tree is found over all sub-blocks at once, then its
+    splits are swept for real; a split that does not slide is banned and the tree found again, within the budget of
+    sweeps. A heuristic split (plan_splits' candidates) pins only what the mean of all normals across it happens to
+    suit: a knot's fragments give contacts on all three cut planes within one block."""
+
+    def __init__(self, normals, scene, centre, slides):
+        from .assembly import _DIRS
+
+        self.keys = list(normals)
+        self.means, self.areas = [], []
+        for k in self.keys:
+            n, w = normals[k]
+            m = (n * w[:, None]).sum(axis=0)
+            self.means.append(m / max(float(np.linalg.norm(m)), 1e-12))
+            self.areas.append(float(w.sum()))
+        self.means = np.array(self.means).reshape(-1, 3)
+        self.dirs = np.concatenate([_DIRS, self.means, -self.means])
+        # per contact, the least and greatest n . d over its triangles for every direction (oriented a -> b)
+        self.lo, self.hi, self.tri = [], [], []
+        for k in self.keys:
+            n = normals[k][0]
+            proj = n @ self.dirs.T
+            self.lo.append(proj.min(axis=0))
+            self.hi.append(proj.max(axis=0))
+            self.tri.append(n)
+        self.cos_tilt = float(np.cos(np.radians(MAX_TILT_DEG)))
+        self.scene, self.centre, self.slides = scene, centre, slides
+        self._split = {}
+
+    def score(self, block, moving):
+        """(pinnable contacts, their area, up to 3 directions (3,) that pin as many, none when nothing crosses), or
+        None when every direction meets a triangle across head on."""
+        key = (block, moving)
+        if key in self._split:
+            return self._split[key]
+        idx, sign = [], []
+        for i, (a, b) in enumerate(self.keys):
+            if a in block and b in block and ((a in moving) != (b in moving)):
+                idx.append(i)
+                sign.append(1.0 if b in moving else -1.0)
+        if not idx:
+            self._split[key] = (0, 0.0, ())
+            return self._split[key]
+        sign = np.array(sign)
+        low = np.min([self.lo[i] if sg > 0 else -self.hi[i] for i, sg in zip(idx, sign, strict=True)], axis=0)
+        means = self.means[idx] * sign[:, None]
+        areas = np.array([self.areas[i] for i in idx])
+        within = (means @ self.dirs.T) >= self.cos_tilt
+        count = np.where(low > -0.5, within.sum(axis=0), -1)
+        if count.max() < 0:
+            self._split[key] = None
+            return None
+        area = within.T.astype(float) @ areas
+        ranked = np.lexsort((area, count))[::-1]
+        best = int(ranked[0])
+        ds = []
+        # the centre of the pinned contacts' normals leaves every pin most upright, when it still holds them all;
+        # then other directions that pin as many, should the first not slide
+        for k in ranked[:8]:
+            if count[k] != count[best] or len(ds) >= 3:
+                break
+            sel = within[:, k]
+            d = self.dirs[k]
+            if sel.any():
+                m = (means[sel] * areas[sel, None]).sum(axis=0)
+                m = m / max(float(np.linalg.norm(m)), 1e-12)
+                tri_low = min(float((self.tri[i] * sg @ m).min()) for i, sg in zip(idx, sign, strict=True))
+                if np.all(means[sel] @ m >= self.cos_tilt) and tri_low > -0.5:
+                    d = m
+            if all(float(d @ e) < 0.999 for e in ds):
+                ds.append(d)
+        self._split[key] = (int(count[best]), float(area[best]), tuple(ds))
+        return self._split[key]
+
+    def free_direction(self, moving, fixed):
+        """A direction along which `moving`, touching `fixed` over no area, slides off it, or None."""
+        from .assembly import _DIRS
+
+        d0 = np.mean([self.centre[k] for k in moving], axis=0) - np.mean([self.centre[k] for k in fixed], axis=0)
+        d0 = d0 / max(float(np.linalg.norm(d0)), 1e-12)
+        for d in [d0] + [_DIRS[i] for i in np.argsort(-(_DIRS @ d0))[:11]]:
+            if self.slides(moving, fixed, d):
+                return d
+        return None
+
+    def plan(self, block, budget):
+        """[(moving, fixed, d), ...] taking `block` (sorted ids) apart, pre-order, or None."""
+        ids = tuple(block)
+        full = (1 << len(ids)) - 1
+        banned, memo = set(), {}
+
+        def members(mask):
+            return frozenset(ids[i] for i in range(len(ids)) if mask >> i & 1)
+
+        def best(mask):
+            if mask in memo:
+                return memo[mask]
+            if mask & (mask - 1) == 0:
+                memo[mask] = ((0, 0.0, 0), ())
+                return memo[mask]
+            low_bit = mask & -mask
+            rest = mask & ~low_bit
+            out = None
+            sub = rest
+            while True:  # every split: `fixed` holds the lowest piece, `moving` is a non-empty part of the rest
+                mv = sub
+                fx = mask & ~mv
+                if mv and (mask, mv) not in banned:
+                    sc = self.score(members(mask), members(mv))
+                    if sc is not None:
+                        a, b = best(fx), best(mv)
+                        if a is not None and b is not None:
+                            total = (sc[0] + a[0][0] + b[0][0], sc[1] + a[0][1] + b[0][1],
+                                     min(bin(mv).count("1"), bin(fx).count("1")) + a[0][2] + b[0][2])
+                            if out is None or total > out[0]:
+                                out = (total, ((mask, mv, sc[2]),) + a[1] + b[1])
+                if sub == 0:
+                    break
+                sub = (sub - 1) & rest
+            memo[mask] = out
+            return out
+
+        while budget[0] > 0:
+            got = best(full)
+            if got is None:
+                return None
+            steps, failed = [], False
+            for mask, mv, ds in got[1]:
+                moving, fixed = sorted(members(mv)), sorted(members(mask & ~mv))
+                if ds:
+                    d = next((d for d in ds if self.slides(moving, fixed, d)), None)
+                else:
+                    d = self.free_direction(moving, fixed)
+                if d is None:
+                    banned.add((mask, mv))
+                    for m in [m for m in memo if m & mask == mask]:  # only the blocks holding this one change
+                        del memo[m]
+                    failed = True
+                    break
+                steps.append((moving, fixed, d))
+            if not failed:
+                return steps
+        return None
+
+
 def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     """The plan of splits on the final pieces' contact graph -> (assembly.AssemblyPlan, {(a, b): unit (3,) along
     which b leaves a}).
@@ -809,16 +960,27 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     # each sweep costs Booleans on the whole pieces: a few per piece in all
     budget = [2 * len(meshes) + 4]
 
-    def slides(moving, fixed, d):
+    swept = {}
+
+    def slides(moving, fixed, d, budget=budget):
         # the contacts say nothing of parts that hook round each other away from them (a knot): sweep for real
-        budget[0] -= 1
-        return scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
+        key = (tuple(moving), tuple(fixed), tuple(np.round(d, 9)))
+        if key not in swept:
+            budget[0] -= 1
+            swept[key] = scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
+        return swept[key]
+
+    exact = _ExactPlan(normals, scene, centre, slides)
 
     def split(block, strict=True):
         """[(moving, fixed, d), ...] taking the block apart, or None when strict and no order of splits found
         within the budget slides (a split whose halves cannot be taken apart further is given up for the next)."""
         if len(block) == 1:
             return []
+        if strict and len(block) <= EXACT_PLAN_PIECES:
+            got = exact.plan(sorted(block), [3 * len(block) + 6])
+            if got is not None:
+                return got
         cands = candidates(set(block))
         for moving, fixed, d in cands[:max_sweeps]:
             if budget[0] <= 0 or not slides(moving, fixed, d):
@@ -849,6 +1011,6 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
             dir_of[(a, b)] = d if b in moving else -d
         axis = int(np.argmax(np.abs(d)))
         steps.append(Step(tuple(sorted(tuple(cells[k]) for k in moving)), tuple(sorted(tuple(cells[k]) for k in fixed)),
-                          axis, 1 if d[axis] >= 0 else -1, ()))
+                          axis, 1 if d[axis] >= 0 else -1, (), slide=tuple(float(x) for x in d)))
     order = tuple(sorted(tuple(cells[k]) for k in meshes))
     return AssemblyPlan((), tuple(steps), order), dir_of
