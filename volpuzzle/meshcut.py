@@ -748,51 +748,64 @@ class _ExactPlan:
         from .assembly import _DIRS
 
         self.keys = list(normals)
-        self.means, self.areas = [], []
+        self.ids = sorted({k for pair in self.keys for k in pair} | set(centre))
+        where = {k: i for i, k in enumerate(self.ids)}
+        self.ends = np.array([[where[a], where[b]] for a, b in self.keys], dtype=np.int64).reshape(-1, 2)
+        means, self.areas = [], []
         for k in self.keys:
             n, w = normals[k]
             m = (n * w[:, None]).sum(axis=0)
-            self.means.append(m / max(float(np.linalg.norm(m)), 1e-12))
+            means.append(m / max(float(np.linalg.norm(m)), 1e-12))
             self.areas.append(float(w.sum()))
-        self.means = np.array(self.means).reshape(-1, 3)
-        self.dirs = np.concatenate([_DIRS, self.means, -self.means])
+        self.areas = np.array(self.areas)
+        means = np.array(means).reshape(-1, 3)
+        self.means = means
+        self.dirs = np.concatenate([_DIRS, means, -means])
+        self.cosines = means @ self.dirs.T  # (contacts, directions)
         # per contact, the least and greatest n . d over its triangles for every direction (oriented a -> b)
-        self.lo, self.hi, self.tri = [], [], []
-        for k in self.keys:
-            n = normals[k][0]
-            proj = n @ self.dirs.T
-            self.lo.append(proj.min(axis=0))
-            self.hi.append(proj.max(axis=0))
-            self.tri.append(n)
+        proj = [normals[k][0] @ self.dirs.T for k in self.keys]
+        self.lo = np.array([p.min(axis=0) for p in proj]).reshape(len(self.keys), -1)
+        self.hi = np.array([p.max(axis=0) for p in proj]).reshape(len(self.keys), -1)
         self.cos_tilt = float(np.cos(np.radians(MAX_TILT_DEG)))
         self.scene, self.centre, self.slides = scene, centre, slides
         self._split = {}
 
     def score(self, block, moving):
-        """(pinnable contacts, their area, up to 3 directions (3,) that pin as many, none when nothing crosses), or
-        None when every direction meets a triangle across head on."""
-        key = (block, moving)
+        """(pinnable contacts, their area, what `directions` needs or () when nothing crosses), or None when every
+        direction meets a triangle across head on. block, moving: sets of ids."""
+        key = (frozenset(block), frozenset(moving))
         if key in self._split:
             return self._split[key]
-        idx, sign = [], []
-        for i, (a, b) in enumerate(self.keys):
-            if a in block and b in block and ((a in moving) != (b in moving)):
-                idx.append(i)
-                sign.append(1.0 if b in moving else -1.0)
-        if not idx:
+        inb = np.array([k in block for k in self.ids])
+        mov = np.array([k in moving for k in self.ids])
+        a, b = self.ends[:, 0], self.ends[:, 1]
+        idx = np.flatnonzero(inb[a] & inb[b] & (mov[a] != mov[b]))
+        if not len(idx):
             self._split[key] = (0, 0.0, ())
             return self._split[key]
-        sign = np.array(sign)
-        low = np.min([self.lo[i] if sg > 0 else -self.hi[i] for i, sg in zip(idx, sign, strict=True)], axis=0)
+        into = mov[b[idx]]  # the contact's normal (a -> b) points into the moving part
+        sign = np.where(into, 1.0, -1.0)
+        low = np.where(into[:, None], self.lo[idx], -self.hi[idx]).min(axis=0)
         means = self.means[idx] * sign[:, None]
-        areas = np.array([self.areas[i] for i in idx])
-        within = (means @ self.dirs.T) >= self.cos_tilt
+        areas = self.areas[idx]
+        within = (self.cosines[idx] * sign[:, None]) >= self.cos_tilt
         count = np.where(low > -0.5, within.sum(axis=0), -1)
         if count.max() < 0:
             self._split[key] = None
             return None
         area = within.T.astype(float) @ areas
         ranked = np.lexsort((area, count))[::-1]
+        best = int(ranked[0])
+        self._split[key] = (int(count[best]), float(area[best]), (ranked, count, within, means, areas, low))
+        return self._split[key]
+
+    def directions(self, block, moving):
+        """Up to 3 unit directions (3,) along which `moving` leaves `block` pinning as many contacts as score says,
+        the most upright first; () when nothing crosses."""
+        got = self.score(block, moving)
+        if got is None or not got[2]:
+            return ()
+        ranked, count, within, means, areas, low = got[2]
         best = int(ranked[0])
         ds = []
         # the centre of the pinned contacts' normals leaves every pin most upright, when it still holds them all;
@@ -805,13 +818,14 @@ class _ExactPlan:
             if sel.any():
                 m = (means[sel] * areas[sel, None]).sum(axis=0)
                 m = m / max(float(np.linalg.norm(m)), 1e-12)
-                tri_low = min(float((self.tri[i] * sg @ m).min()) for i, sg in zip(idx, sign, strict=True))
+                # n . m >= n . e - |m - e| for the nearest listed direction e: a bound, not the triangles again
+                near = int(np.argmax(self.dirs @ m))
+                tri_low = float(low[near]) - float(np.linalg.norm(m - self.dirs[near]))
                 if np.all(means[sel] @ m >= self.cos_tilt) and tri_low > -0.5:
                     d = m
             if all(float(d @ e) < 0.999 for e in ds):
                 ds.append(d)
-        self._split[key] = (int(count[best]), float(area[best]), tuple(ds))
-        return self._split[key]
+        return tuple(ds)
 
     def free_direction(self, moving, fixed):
         """A direction along which `moving`, touching `fixed` over no area, slides off it, or None."""
@@ -854,7 +868,7 @@ class _ExactPlan:
                             total = (sc[0] + a[0][0] + b[0][0], sc[1] + a[0][1] + b[0][1],
                                      min(bin(mv).count("1"), bin(fx).count("1")) + a[0][2] + b[0][2])
                             if out is None or total > out[0]:
-                                out = (total, ((mask, mv, sc[2]),) + a[1] + b[1])
+                                out = (total, ((mask, mv),) + a[1] + b[1])
                 if sub == 0:
                     break
                 sub = (sub - 1) & rest
@@ -866,8 +880,9 @@ class _ExactPlan:
             if got is None:
                 return None
             steps, failed = [], False
-            for mask, mv, ds in got[1]:
+            for mask, mv in got[1]:
                 moving, fixed = sorted(members(mv)), sorted(members(mask & ~mv))
+                ds = self.directions(members(mask), members(mv))
                 if ds:
                     d = next((d for d in ds if self.slides(moving, fixed, d)), None)
                 else:
@@ -900,7 +915,6 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     scene = _Scene(meshes)
     centre = {k: np.asarray(m.centroid, float) for k, m in meshes.items()}
     normals = {(c.a, c.b): _contact_normals(c) for c in found}
-    cos_tilt = np.cos(np.radians(MAX_TILT_DEG))
 
     def parts(block):
         import networkx as nx
@@ -946,16 +960,15 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
                 ns, ws, _ = crossing(block, moving)
                 if not ns:
                     continue
-                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws, strict=True)))
-                low = min(float((n @ d).min()) for n in ns)
-                if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
+                # the direction that leaves the most contacts across within the pins' tilt, so each can take a
+                # pin along it (a triangle facing head on against it blocks at once; gentler ones the sweep judges)
+                got = exact.score(block, moving)
+                if got is None or not got[2]:
                     continue
-                # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
-                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws, strict=True)]
-                key = (min(means) >= cos_tilt, min(cut, len(order) - cut), min(means), low)
-                cands.append((key, sorted(moving), sorted(order[:cut]), d))
+                key = (got[0] - len(ns), min(cut, len(order) - cut), got[1])
+                cands.append((key, sorted(moving), sorted(order[:cut]), block, moving))
         cands.sort(key=lambda c: c[0], reverse=True)
-        return [c[1:] for c in cands]
+        return [(m, f, exact.directions(b, mv)[0]) for _, m, f, b, mv in cands[:max_sweeps]]
 
     # each sweep costs Booleans on the whole pieces: a few per piece in all
     budget = [2 * len(meshes) + 4]
