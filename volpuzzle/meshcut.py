@@ -903,12 +903,13 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     """The plan of splits on the final pieces' contact graph -> (assembly.AssemblyPlan, {(a, b): unit (3,) along
     which b leaves a}).
 
-    A block of pieces is cut in two where every contact triangle across the cut faces the same way: the moving part
-    leaves along the area-weighted mean normal d of those contacts, and no triangle faces against d (a triangle at an
-    angle beyond 90 deg would block the slide at once). Cuts are tried between the pieces sorted along each contact's
-    normal and the three axes; the best (every contact within MAX_TILT_DEG of d, then the most even, then the closest
-    to d) whose block really slides off, swept every `fine` mm as assembly.verify_disassembly does, wins. meshes:
-    {id: trimesh}; found: contacts(meshes); cells: {id: cell index}.
+    A block of pieces is cut in two and the moving part leaves along a direction d that as many contacts across as
+    possible stand within MAX_TILT_DEG of (each takes a pin along d), with no triangle across facing more than 120
+    deg against d (it would block the slide at once). A block of up to EXACT_PLAN_PIECES pieces takes the best of
+    all its split trees (_ExactPlan); a larger one is cut between its pieces sorted along each contact's normal and
+    the three axes, the cut losing the fewest pins first, then the most even, and its halves planned again. A split
+    counts only when its block really slides off, swept every `fine` mm as assembly.verify_disassembly does.
+    meshes: {id: trimesh}; found: contacts(meshes); cells: {id: cell index}. Every Step records its d as `slide`.
     """
     from .assembly import AssemblyPlan, Step, _Scene
 
