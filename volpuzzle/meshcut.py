@@ -762,8 +762,15 @@ class _ExactPlan:
         self.means = means
         self.dirs = np.concatenate([_DIRS, means, -means])
         self.cosines = means @ self.dirs.T  # (contacts, directions)
-        # per contact, the least and greatest n . d over its triangles for every direction (oriented a -> b)
-        proj = [normals[k][0] @ self.dirs.T for k in self.keys]
+        # per contact, the least and greatest n . d over its triangles for every direction (oriented a -> b), but for
+        # the smallest that together hold a thousandth of its area: slivers where the mesh meets a cut face point
+        # anywhere (0.005 mm^2 of a 1,667 mm^2 contact on the fandisk faced 164 deg off), and sweep no volume
+        proj = []
+        for k in self.keys:
+            n, w = normals[k]
+            order = np.argsort(w)
+            keep = order[np.cumsum(w[order]) > 1e-3 * w.sum()]
+            proj.append(n[keep] @ self.dirs.T)
         self.lo = np.array([p.min(axis=0) for p in proj]).reshape(len(self.keys), -1)
         self.hi = np.array([p.max(axis=0) for p in proj]).reshape(len(self.keys), -1)
         self.cos_tilt = float(np.cos(np.radians(MAX_TILT_DEG)))
