@@ -776,6 +776,7 @@ class _ExactPlan:
         self.cos_tilt = float(np.cos(np.radians(MAX_TILT_DEG)))
         self.scene, self.centre, self.slides = scene, centre, slides
         self._split = {}
+        self._failed = {}  # (block, moving) -> directions (3,) along which it was swept and did not slide
 
     def score(self, block, moving):
         """(pinnable contacts, their area, what `directions` needs or () when nothing crosses), or None when every
@@ -797,6 +798,9 @@ class _ExactPlan:
         areas = self.areas[idx]
         within = (self.cosines[idx] * sign[:, None]) >= self.cos_tilt
         count = np.where(low > -0.5, within.sum(axis=0), -1)
+        failed = self._failed.get(key)
+        if failed:  # what did not slide, and its neighbours within 12 deg, make way for the next best
+            count = np.where((self.dirs @ np.array(failed).T).max(axis=1) > np.cos(np.radians(12.0)), -1, count)
         if count.max() < 0:
             self._split[key] = None
             return None
@@ -815,6 +819,7 @@ class _ExactPlan:
         ranked, count, within, means, areas, low = got[2]
         best = int(ranked[0])
         ds = []
+        failed = np.array(self._failed.get((frozenset(block), frozenset(moving)), np.zeros((0, 3)))).reshape(-1, 3)
         # the centre of the pinned contacts' normals leaves every pin most upright, when it still holds them all;
         # then other directions that pin as many, should the first not slide
         for k in ranked[:8]:
@@ -830,18 +835,18 @@ class _ExactPlan:
                 tri_low = float(low[near]) - float(np.linalg.norm(m - self.dirs[near]))
                 if np.all(means[sel] @ m >= self.cos_tilt) and tri_low > -0.5:
                     d = m
-            if all(float(d @ e) < 0.999 for e in ds):
+            if all(float(d @ e) < 0.999 for e in ds) and not np.any(failed @ d > np.cos(np.radians(12.0))):
                 ds.append(d)
         return tuple(ds)
 
-    def free_direction(self, moving, fixed):
+    def free_direction(self, moving, fixed, budget):
         """A direction along which `moving`, touching `fixed` over no area, slides off it, or None."""
         from .assembly import _DIRS
 
         d0 = np.mean([self.centre[k] for k in moving], axis=0) - np.mean([self.centre[k] for k in fixed], axis=0)
         d0 = d0 / max(float(np.linalg.norm(d0)), 1e-12)
         for d in [d0] + [_DIRS[i] for i in np.argsort(-(_DIRS @ d0))[:11]]:
-            if self.slides(moving, fixed, d):
+            if self.slides(moving, fixed, d, budget):
                 return d
         return None
 
@@ -882,7 +887,9 @@ class _ExactPlan:
             memo[mask] = out
             return out
 
-        while budget[0] > 0:
+        for _ in range(4 * budget[0]):  # each round sweeps at least once or bans a split
+            if budget[0] <= 0:
+                return None
             got = best(full)
             if got is None:
                 return None
@@ -890,12 +897,20 @@ class _ExactPlan:
             for mask, mv in got[1]:
                 moving, fixed = sorted(members(mv)), sorted(members(mask & ~mv))
                 ds = self.directions(members(mask), members(mv))
-                if ds:
-                    d = next((d for d in ds if self.slides(moving, fixed, d)), None)
+                crosses = bool(self.score(members(mask), members(mv))[2])
+                if crosses and not ds:
+                    d = None
+                elif ds:
+                    d = next((d for d in ds if self.slides(moving, fixed, d, budget)), None)
                 else:
-                    d = self.free_direction(moving, fixed)
+                    d = self.free_direction(moving, fixed, budget)
                 if d is None:
-                    banned.add((mask, mv))
+                    if ds:  # the split may still slide another way, pinning fewer
+                        key = (members(mask), members(mv))
+                        self._failed.setdefault(key, []).extend(ds)
+                        self._split.pop(key, None)
+                    else:
+                        banned.add((mask, mv))
                     for m in [m for m in memo if m & mask == mask]:  # only the blocks holding this one change
                         del memo[m]
                     failed = True
