@@ -129,11 +129,12 @@ def contacts(pieces):
 # --- fragments ------------------------------------------------------------------------------------------------------
 def merge_fragments(pieces, min_fraction=0.05):
     """{id: Manifold} -> ({id: Manifold}, merge records). Every piece keeps its largest body; every other body (a
-    fragment) and every piece under min_fraction of the mean volume joins the piece it shares the largest contact
-    area with. Contacts are summed over what has merged so far, so a fragment that touches only another fragment
-    follows it, and a ring of fragments (a torus, a knot) finds its piece too. Total volume is kept; ids stay the
-    cells'. A fragment that touches nothing (only at edges or points, or not at all) -> GeometryError; a small piece
-    that touches nothing stays a piece of its own.
+    fragment) and every piece under min_fraction of the mean volume joins a piece it touches: among its contacts at
+    least NEAR_CONTACT of its widest, the one whose piece then spans the fewest cells, a piece before another
+    fragment, then the widest. Contacts are summed over what has merged so far, so a fragment that touches only
+    another fragment follows it, and a ring of fragments (a torus, a knot) finds its piece too. Total volume is kept;
+    ids stay the cells'. A fragment that touches nothing (only at edges or points, or not at all) -> GeometryError;
+    a small piece that touches nothing stays a piece of its own.
 
     Records: {"from": id, "to": id, "volume_mm3": v, "reason": "fragment" | "small piece"}, and "to" None with
     "speck dropped" for bodies below a thousandth of a mm^3.
