@@ -201,3 +201,25 @@ def test_a_fragment_prefers_the_piece_spanning_fewest_cells_among_near_widest_co
     assert {(r["from"], r["to"]) for r in records} == {("p2-0-0", "p0-0-0"), ("p3-0-0", "p1-0-0")}
     assert out["p0-0-0"].volume() == pytest.approx(800 + 1200)
     assert all(len(p.decompose()) == 1 for p in out.values())
+
+
+def test_the_exact_plan_pins_every_contact_that_one_slide_per_split_can_hold():
+    from volpuzzle.meshcut import _ExactPlan
+
+    def flat(n, area=100.0, sliver=None):
+        ns, ws = [np.asarray(n, float)] * 2, [area / 2] * 2
+        if sliver is not None:  # a 0.01 mm^2 triangle facing anywhere, as where the mesh meets a cut face
+            ns.append(np.asarray(sliver, float))
+            ws.append(0.01)
+        return np.array(ns), np.array(ws)
+
+    # a-b meet on an x plane, a-c and b-c on z planes: c must leave first (along +z, both its pins), then b (+x);
+    # b first would cross one x and one z contact, which no one slide within 30 deg of both can pin
+    normals = {("a", "b"): flat([1, 0, 0], sliver=[-1, 0, 0]), ("a", "c"): flat([0, 0, 1]),
+               ("b", "c"): flat([0, 0, 1])}
+    centre = {"a": np.zeros(3), "b": np.array([10.0, 0, 0]), "c": np.array([5.0, 0, 10])}
+    plan = _ExactPlan(normals, None, centre, lambda *_: True)  # every split slides: the contacts alone decide
+    steps = plan.plan(["a", "b", "c"], [10])
+    assert [s[0] for s in steps] == [["c"], ["b"]]
+    assert np.allclose(steps[0][2], [0, 0, 1]) and np.allclose(steps[1][2], [1, 0, 0])
+    assert plan.score({"a", "b", "c"}, {"b"})[0] == 1 and plan.score({"a", "b"}, {"b"})[0] == 1
