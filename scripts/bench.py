@@ -74,7 +74,7 @@ def child(spec, out, jobs):
         "stages": {k: v for k, v in report["timings_s"].items() if k != "total"}, "stages_cpu": cpu,
         "peak_mb": own.ru_maxrss / 1024, "peak_child_mb": kids.ru_maxrss / 1024,
         "triangles": sum(p["triangles"] for p in report["pieces"]),
-        "joints": report_figures(report),
+        "joints": report_figures(report), "welded": bool(report["assembly"]["welded"]),
     }))
 
 

@@ -50,7 +50,8 @@ class Step:
 
     moving and fixed together are the block present at that moment (other blocks were taken apart separately);
     joints: face numbers (into tiling.faces) crossing the split that carry a joint; ring_cut: the split also cuts a
-    periodic seam, so the two halves part across two faces at once.
+    periodic seam, so the two halves part across two faces at once; slide: the mm direction (3,) in which moving
+    leaves when the plan knows it (mesh mode), the way the replay takes a split that no joint crosses.
     """
 
     moving: tuple
@@ -59,6 +60,7 @@ class Step:
     sign: int
     joints: tuple
     ring_cut: bool = False
+    slide: tuple | None = None
 
     @property
     def direction(self):
@@ -584,13 +586,15 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
         if len(block) == 1:
             return [{"kind": "place", "piece": piece_id(block[0]), "pieces": [piece_id(block[0])], "into": [],
                      "onto": [], "direction": None, "axis": None, "joints": []}]
-        for moving, fixed, a, s in _candidates(block, planned.get(frozenset(block)), max_tries, groups):
+        step = planned.get(frozenset(block))
+        for moving, fixed, a, s in _candidates(block, step, max_tries, groups):
             across = _across(joints, moving, fixed)
             d, _ = _direction(across, moving, fixed)
             if d is None:
                 if across:
                     continue  # pins pointing against each other: this split cannot part
-                d = centroid(moving) - centroid(fixed)
+                known = step is not None and step.slide is not None and set(moving) == set(step.moving)
+                d = np.asarray(step.slide, float) if known else centroid(moving) - centroid(fixed)
                 n = float(np.linalg.norm(d))
                 if n < 1e-9:
                     continue

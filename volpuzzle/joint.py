@@ -776,6 +776,8 @@ def report_figures(report):
     joints = report.get("joints") or []
     parts, loose = joint_graph(ids, [(j.get("pin_piece"), j.get("hole_piece")) for j in joints])
     contacts = report.get("contacts")
+    if contacts is None:  # mesh mode lists its contacts with the mesh's own figures
+        contacts = (report.get("mesh") or {}).get("contacts")
     vols = [float(p["volume_mm3"]) for p in pieces if p.get("volume_mm3") is not None]
     return {
         "pieces": len(ids),

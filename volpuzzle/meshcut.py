@@ -34,6 +34,7 @@ __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSiz
 
 MAX_PINS = 3  # pins and holes per piece, as in the paper
 SLIVER_SHARE = 0.002  # of a piece's volume: what a face clearance may cut off it as slivers
+NEAR_CONTACT = 0.5  # a fragment's contact this share of its widest one may win by other merits
 _KEY = 1e6  # vertex keys: mm rounded to a nanometre
 _NUDGE = 1e-6 * np.array([0.6180339887, 0.4142135624, 0.7320508076])  # of the model's size, see compose_in_mesh
 
@@ -130,11 +131,12 @@ def contacts(pieces):
 # --- fragments ------------------------------------------------------------------------------------------------------
 def merge_fragments(pieces, min_fraction=0.05):
     """{id: Manifold} -> ({id: Manifold}, merge records). Every piece keeps its largest body; every other body (a
-    fragment) and every piece under min_fraction of the mean volume joins the piece it shares the largest contact
-    area with. Contacts are summed over what has merged so far, so a fragment that touches only another fragment
-    follows it, and a ring of fragments (a torus, a knot) finds its piece too. Total volume is kept; ids stay the
-    cells'. A fragment that touches nothing (only at edges or points, or not at all) -> GeometryError; a small piece
-    that touches nothing stays a piece of its own.
+    fragment) and every piece under min_fraction of the mean volume joins a piece it touches: among its contacts at
+    least NEAR_CONTACT of its widest, the one whose piece then spans the fewest cells, a piece before another
+    fragment, then the widest. Contacts are summed over what has merged so far, so a fragment that touches only
+    another fragment follows it, and a ring of fragments (a torus, a knot) finds its piece too. Total volume is kept;
+    ids stay the cells'. A fragment that touches nothing (only at edges or points, or not at all) -> GeometryError;
+    a small piece that touches nothing stays a piece of its own.
 
     Records: {"from": id, "to": id, "volume_mm3": v, "reason": "fragment" | "small piece"}, and "to" None with
     "speck dropped" for bodies below a thousandth of a mm^3.
@@ -180,9 +182,16 @@ def merge_fragments(pieces, min_fraction=0.05):
         for c in members:
             if settled[c]:
                 continue
-            for o, a in touch[c].items():
-                key = (a, -min(members[o]), -min(members[c]))
-                if (c, o) not in banned and (best is None or key > best[0]):
+            open_ = {o: a for o, a in touch[c].items() if (c, o) not in banned}
+            widest = max(open_.values(), default=0.0)
+            for o, a in open_.items():
+                # Among the contacts nearly as wide as its widest, a fragment joins the piece that then spans the
+                # fewest cells, a piece rather than another fragment. A piece spread over many cells reaches round
+                # its neighbours and locks them in: a knot cut 2 x 2 x 1 leaves two arcs in every cell, and arcs
+                # chained arc to arc by the widest contact gave pieces that no straight slide takes apart.
+                span = len({bodies[k][0] for k in members[o] + members[c]})
+                key = (a >= NEAR_CONTACT * widest, -span, settled[o], a, -min(members[o]), -min(members[c]))
+                if best is None or key > best[0]:
                     best = (key, c, o)
         if best is None:
             break
@@ -816,23 +825,211 @@ def _contact_normals(c):
     return n[keep] / size[keep, None], 0.5 * size[keep]
 
 
+EXACT_PLAN_PIECES = 8  # blocks up to this many pieces get the exact search over all their splits (3^n / 2 of them)
+
+
+class _ExactPlan:
+    """The split tree of a small block that pins the most contacts: every split (moving, fixed) of every sub-block is
+    scored by the contacts across it whose mean normal lies within MAX_TILT_DEG of one sliding direction d (and no
+    triangle across faces more than 120 deg against d), the best tree is found over all sub-blocks at once, then its
+    splits are swept for real; a split that does not slide is banned and the tree found again, within the budget of
+    sweeps. A heuristic split (plan_splits' candidates) pins only what the mean of all normals across it happens to
+    suit: a knot's fragments give contacts on all three cut planes within one block."""
+
+    def __init__(self, normals, scene, centre, slides):
+        from .assembly import _DIRS
+
+        self.keys = list(normals)
+        self.ids = sorted({k for pair in self.keys for k in pair} | set(centre))
+        where = {k: i for i, k in enumerate(self.ids)}
+        self.ends = np.array([[where[a], where[b]] for a, b in self.keys], dtype=np.int64).reshape(-1, 2)
+        means, self.areas = [], []
+        for k in self.keys:
+            n, w = normals[k]
+            m = (n * w[:, None]).sum(axis=0)
+            means.append(m / max(float(np.linalg.norm(m)), 1e-12))
+            self.areas.append(float(w.sum()))
+        self.areas = np.array(self.areas)
+        means = np.array(means).reshape(-1, 3)
+        self.means = means
+        self.dirs = np.concatenate([_DIRS, means, -means])
+        self.cosines = means @ self.dirs.T  # (contacts, directions)
+        # per contact, the least and greatest n . d over its triangles for every direction (oriented a -> b), but for
+        # the smallest that together hold a thousandth of its area: slivers where the mesh meets a cut face point
+        # anywhere (0.005 mm^2 of a 1,667 mm^2 contact on the fandisk faced 164 deg off), and sweep no volume
+        proj = []
+        for k in self.keys:
+            n, w = normals[k]
+            order = np.argsort(w)
+            keep = order[np.cumsum(w[order]) > 1e-3 * w.sum()]
+            proj.append(n[keep] @ self.dirs.T)
+        self.lo = np.array([p.min(axis=0) for p in proj]).reshape(len(self.keys), -1)
+        self.hi = np.array([p.max(axis=0) for p in proj]).reshape(len(self.keys), -1)
+        self.cos_tilt = float(np.cos(np.radians(MAX_TILT_DEG)))
+        self.scene, self.centre, self.slides = scene, centre, slides
+        self._split = {}
+        self._failed = {}  # (block, moving) -> directions (3,) along which it was swept and did not slide
+
+    def score(self, block, moving):
+        """(pinnable contacts, their area, what `directions` needs or () when nothing crosses), or None when every
+        direction meets a triangle across head on. block, moving: sets of ids."""
+        key = (frozenset(block), frozenset(moving))
+        if key in self._split:
+            return self._split[key]
+        inb = np.array([k in block for k in self.ids])
+        mov = np.array([k in moving for k in self.ids])
+        a, b = self.ends[:, 0], self.ends[:, 1]
+        idx = np.flatnonzero(inb[a] & inb[b] & (mov[a] != mov[b]))
+        if not len(idx):
+            self._split[key] = (0, 0.0, ())
+            return self._split[key]
+        into = mov[b[idx]]  # the contact's normal (a -> b) points into the moving part
+        sign = np.where(into, 1.0, -1.0)
+        low = np.where(into[:, None], self.lo[idx], -self.hi[idx]).min(axis=0)
+        means = self.means[idx] * sign[:, None]
+        areas = self.areas[idx]
+        within = (self.cosines[idx] * sign[:, None]) >= self.cos_tilt
+        count = np.where(low > -0.5, within.sum(axis=0), -1)
+        failed = self._failed.get(key)
+        if failed:  # what did not slide, and its neighbours within 12 deg, make way for the next best
+            count = np.where((self.dirs @ np.array(failed).T).max(axis=1) > np.cos(np.radians(12.0)), -1, count)
+        if count.max() < 0:
+            self._split[key] = None
+            return None
+        area = within.T.astype(float) @ areas
+        ranked = np.lexsort((area, count))[::-1]
+        best = int(ranked[0])
+        self._split[key] = (int(count[best]), float(area[best]), (ranked, count, within, means, areas, low))
+        return self._split[key]
+
+    def directions(self, block, moving):
+        """Up to 3 unit directions (3,) along which `moving` leaves `block` pinning as many contacts as score says,
+        the most upright first; () when nothing crosses."""
+        got = self.score(block, moving)
+        if got is None or not got[2]:
+            return ()
+        ranked, count, within, means, areas, low = got[2]
+        best = int(ranked[0])
+        ds = []
+        failed = np.array(self._failed.get((frozenset(block), frozenset(moving)), np.zeros((0, 3)))).reshape(-1, 3)
+        # the centre of the pinned contacts' normals leaves every pin most upright, when it still holds them all;
+        # then other directions that pin as many, should the first not slide
+        for k in ranked[:8]:
+            if count[k] != count[best] or len(ds) >= 3:
+                break
+            sel = within[:, k]
+            d = self.dirs[k]
+            if sel.any():
+                m = (means[sel] * areas[sel, None]).sum(axis=0)
+                m = m / max(float(np.linalg.norm(m)), 1e-12)
+                # n . m >= n . e - |m - e| for the nearest listed direction e: a bound, not the triangles again
+                near = int(np.argmax(self.dirs @ m))
+                tri_low = float(low[near]) - float(np.linalg.norm(m - self.dirs[near]))
+                if np.all(means[sel] @ m >= self.cos_tilt) and tri_low > -0.5:
+                    d = m
+            if all(float(d @ e) < 0.999 for e in ds) and not np.any(failed @ d > np.cos(np.radians(12.0))):
+                ds.append(d)
+        return tuple(ds)
+
+    def free_direction(self, moving, fixed, budget):
+        """A direction along which `moving`, touching `fixed` over no area, slides off it, or None."""
+        from .assembly import _DIRS
+
+        d0 = np.mean([self.centre[k] for k in moving], axis=0) - np.mean([self.centre[k] for k in fixed], axis=0)
+        d0 = d0 / max(float(np.linalg.norm(d0)), 1e-12)
+        for d in [d0] + [_DIRS[i] for i in np.argsort(-(_DIRS @ d0))[:11]]:
+            if self.slides(moving, fixed, d, budget):
+                return d
+        return None
+
+    def plan(self, block, budget):
+        """[(moving, fixed, d), ...] taking `block` (sorted ids) apart, pre-order, or None."""
+        ids = tuple(block)
+        full = (1 << len(ids)) - 1
+        banned, memo = set(), {}
+
+        def members(mask):
+            return frozenset(ids[i] for i in range(len(ids)) if mask >> i & 1)
+
+        def best(mask):
+            if mask in memo:
+                return memo[mask]
+            if mask & (mask - 1) == 0:
+                memo[mask] = ((0, 0.0, 0), ())
+                return memo[mask]
+            low_bit = mask & -mask
+            rest = mask & ~low_bit
+            out = None
+            sub = rest
+            while True:  # every split: `fixed` holds the lowest piece, `moving` is a non-empty part of the rest
+                mv = sub
+                fx = mask & ~mv
+                if mv and (mask, mv) not in banned:
+                    sc = self.score(members(mask), members(mv))
+                    if sc is not None:
+                        a, b = best(fx), best(mv)
+                        if a is not None and b is not None:
+                            total = (sc[0] + a[0][0] + b[0][0], sc[1] + a[0][1] + b[0][1],
+                                     min(bin(mv).count("1"), bin(fx).count("1")) + a[0][2] + b[0][2])
+                            if out is None or total > out[0]:
+                                out = (total, ((mask, mv),) + a[1] + b[1])
+                if sub == 0:
+                    break
+                sub = (sub - 1) & rest
+            memo[mask] = out
+            return out
+
+        for _ in range(4 * budget[0]):  # each round sweeps at least once or bans a split
+            if budget[0] <= 0:
+                return None
+            got = best(full)
+            if got is None:
+                return None
+            steps, failed = [], False
+            for mask, mv in got[1]:
+                moving, fixed = sorted(members(mv)), sorted(members(mask & ~mv))
+                ds = self.directions(members(mask), members(mv))
+                crosses = bool(self.score(members(mask), members(mv))[2])
+                if crosses and not ds:
+                    d = None
+                elif ds:
+                    d = next((d for d in ds if self.slides(moving, fixed, d, budget)), None)
+                else:
+                    d = self.free_direction(moving, fixed, budget)
+                if d is None:
+                    if ds:  # the split may still slide another way, pinning fewer
+                        key = (members(mask), members(mv))
+                        self._failed.setdefault(key, []).extend(ds)
+                        self._split.pop(key, None)
+                    else:
+                        banned.add((mask, mv))
+                    for m in [m for m in memo if m & mask == mask]:  # only the blocks holding this one change
+                        del memo[m]
+                    failed = True
+                    break
+                steps.append((moving, fixed, d))
+            if not failed:
+                return steps
+        return None
+
+
 def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
     """The plan of splits on the final pieces' contact graph -> (assembly.AssemblyPlan, {(a, b): unit (3,) along
     which b leaves a}).
 
-    A block of pieces is cut in two where every contact triangle across the cut faces the same way: the moving part
-    leaves along the area-weighted mean normal d of those contacts, and no triangle faces against d (a triangle at an
-    angle beyond 90 deg would block the slide at once). Cuts are tried between the pieces sorted along each contact's
-    normal and the three axes; the best (every contact within MAX_TILT_DEG of d, then the most even, then the closest
-    to d) whose block really slides off, swept every `fine` mm as assembly.verify_disassembly does, wins. meshes:
-    {id: trimesh}; found: contacts(meshes); cells: {id: cell index}.
+    A block of pieces is cut in two and the moving part leaves along a direction d that as many contacts across as
+    possible stand within MAX_TILT_DEG of (each takes a pin along d), with no triangle across facing more than 120
+    deg against d (it would block the slide at once). A block of up to EXACT_PLAN_PIECES pieces takes the best of
+    all its split trees (_ExactPlan); a larger one is cut between its pieces sorted along each contact's normal and
+    the three axes, the cut losing the fewest pins first, then the most even, and its halves planned again. A split
+    counts only when its block really slides off, swept every `fine` mm as assembly.verify_disassembly does.
+    meshes: {id: trimesh}; found: contacts(meshes); cells: {id: cell index}. Every Step records its d as `slide`.
     """
     from .assembly import AssemblyPlan, Step, _Scene
 
     scene = _Scene(meshes)
     centre = {k: np.asarray(m.centroid, float) for k, m in meshes.items()}
     normals = {(c.a, c.b): _contact_normals(c) for c in found}
-    cos_tilt = np.cos(np.radians(MAX_TILT_DEG))
 
     def parts(block):
         import networkx as nx
@@ -878,30 +1075,40 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
                 ns, ws, _ = crossing(block, moving)
                 if not ns:
                     continue
-                d = unit(sum((n * w[:, None]).sum(axis=0) for n, w in zip(ns, ws, strict=True)))
-                low = min(float((n @ d).min()) for n in ns)
-                if low <= -0.5:  # a slope this steep against d blocks at once; gentler ones the sweep judges
+                # the direction that leaves the most contacts across within the pins' tilt, so each can take a
+                # pin along it (a triangle facing head on against it blocks at once; gentler ones the sweep judges)
+                got = exact.score(block, moving)
+                if got is None or not got[2]:
                     continue
-                # every contact's mean normal within the pins' tilt of d, so each can take a pin along d
-                means = [float(((n * w[:, None]).sum(axis=0) / w.sum()) @ d) for n, w in zip(ns, ws, strict=True)]
-                key = (min(means) >= cos_tilt, min(cut, len(order) - cut), min(means), low)
-                cands.append((key, sorted(moving), sorted(order[:cut]), d))
+                key = (got[0] - len(ns), min(cut, len(order) - cut), got[1])
+                cands.append((key, sorted(moving), sorted(order[:cut]), block, moving))
         cands.sort(key=lambda c: c[0], reverse=True)
-        return [c[1:] for c in cands]
+        return [(m, f, exact.directions(b, mv)[0]) for _, m, f, b, mv in cands[:max_sweeps]]
 
     # each sweep costs Booleans on the whole pieces: a few per piece in all
     budget = [2 * len(meshes) + 4]
 
-    def slides(moving, fixed, d):
+    swept = {}
+
+    def slides(moving, fixed, d, budget=budget):
         # the contacts say nothing of parts that hook round each other away from them (a knot): sweep for real
-        budget[0] -= 1
-        return scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
+        key = (tuple(moving), tuple(fixed), tuple(np.round(d, 9)))
+        if key not in swept:
+            budget[0] -= 1
+            swept[key] = scene.sweep_clear(moving, fixed, d, fine, 1e-4)[0]
+        return swept[key]
+
+    exact = _ExactPlan(normals, scene, centre, slides)
 
     def split(block, strict=True):
         """[(moving, fixed, d), ...] taking the block apart, or None when strict and no order of splits found
         within the budget slides (a split whose halves cannot be taken apart further is given up for the next)."""
         if len(block) == 1:
             return []
+        if strict and len(block) <= EXACT_PLAN_PIECES:
+            got = exact.plan(sorted(block), [3 * len(block) + 6])
+            if got is not None:
+                return got
         cands = candidates(set(block))
         for moving, fixed, d in cands[:max_sweeps]:
             if budget[0] <= 0 or not slides(moving, fixed, d):
@@ -932,6 +1139,6 @@ def plan_splits(meshes, found, cells, fine=0.75, max_sweeps=4):
             dir_of[(a, b)] = d if b in moving else -d
         axis = int(np.argmax(np.abs(d)))
         steps.append(Step(tuple(sorted(tuple(cells[k]) for k in moving)), tuple(sorted(tuple(cells[k]) for k in fixed)),
-                          axis, 1 if d[axis] >= 0 else -1, ()))
+                          axis, 1 if d[axis] >= 0 else -1, (), slide=tuple(float(x) for x in d)))
     order = tuple(sorted(tuple(cells[k]) for k in meshes))
     return AssemblyPlan((), tuple(steps), order), dir_of
