@@ -25,8 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .geometry import check_status
-from .grid import frame_from_direction
+from .geometry import check_status, cylinder
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
@@ -274,17 +273,6 @@ def _reach(size, radius):
     return outer_radius(radius, size.shape) + size.clearance
 
 
-def _cylinder(center, d, r, z0, z1, segments=24):
-    import manifold3d
-
-    d = np.asarray(d, float)
-    e1, e2, n = frame_from_direction(d / np.linalg.norm(d))
-    m = np.zeros((3, 4))
-    m[:, 0], m[:, 1], m[:, 2], m[:, 3] = e1, e2, n, center
-    cyl = manifold3d.Manifold.cylinder(z1 - z0, r, -1.0, segments).translate([0.0, 0.0, z0])
-    return check_status(cyl.transform(m), "joint", "the joint's room")
-
-
 def _outside(env, solids):
     """True when some of `env` lies outside the union of `solids` (more than a polygon's rounding)."""
     rest = env
@@ -436,11 +424,11 @@ def _fit(patch, crops, contact, size, p, d, r, L, pin_a):
     base = round(max(0.5, 1.5 * max(-lo, 0.0) + 0.3), 4)
     front = L + size.axial_clearance
     a_solid, b_solid = (crops[contact.a], crops[contact.b]) if pin_a else (crops[contact.b], crops[contact.a])
-    if _outside(_cylinder(p, d, R + w, -(base + w), front + w), [a_solid, b_solid]):
+    if _outside(cylinder(p, d, R + w, -(base + w), front + w, "joint", 24), [a_solid, b_solid]):
         return None, "the pin's hole with its wall would break out of the two pieces"
-    if _outside(_cylinder(p, d, R + w, max(hi, 0.0) + 1e-3, front + w), [b_solid]):
+    if _outside(cylinder(p, d, R + w, max(hi, 0.0) + 1e-3, front + w, "joint", 24), [b_solid]):
         return None, f"the hole piece is too thin for a {L:g} mm pin with its wall"
-    if _outside(_cylinder(p, d, r + w, -(base + w), min(lo, 0.0) - 1e-3), [a_solid]):
+    if _outside(cylinder(p, d, r + w, -(base + w), min(lo, 0.0) - 1e-3, "joint", 24), [a_solid]):
         return None, "the pin piece is too thin for the pin's base"
     return base, None
 
