@@ -775,7 +775,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_c
         if face_clearance > 0:
             # the contacts, merges and joints above need the faces closed (they are found where pieces touch):
             # the faces are set back only now, before the pins and holes, which keep their own clearances
-            shrunk = compose(tiling, stages["fmap"], [], tolerance, jobs=jobs, face_clearance=face_clearance)
+            shrunk = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, face_clearance=face_clearance)
             cut, taken = set_back_faces(cut, {p.id: from_trimesh(p.mesh, p.id) for p in bodies},
                                         {p.id: from_trimesh(p.mesh, p.id) for p in shrunk}, merges, face_clearance)
         jointed = add_joints(cut, cells, joints)
