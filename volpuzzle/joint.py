@@ -202,10 +202,10 @@ class _Geometry:
 _GRID = np.linspace(0.0, 1.0, 7)
 
 
-def _len_at(geo, idx, a, fr):
+def _len_at(cell_lengths, idx, a, fr):
     """Length (n,) mm of the a-lines of cell idx through fractions fr (n, 3), bilinear in the grid."""
     b, c = _cyclic(a)
-    tab = geo.lengths[idx][a]
+    tab = cell_lengths.lengths[idx][a]
     g = len(_GRID) - 1
     x = np.clip(np.asarray(fr, dtype=float)[:, b], 0.0, 1.0) * g
     y = np.clip(np.asarray(fr, dtype=float)[:, c], 0.0, 1.0) * g
@@ -216,8 +216,8 @@ def _len_at(geo, idx, a, fr):
             + tx * ty * tab[i + 1, j + 1])
 
 
-def _center_len(geo, idx, a):
-    return float(_len_at(geo, idx, a, np.full((1, 3), 0.5))[0])
+def _center_len(cell_lengths, idx, a):
+    return float(_len_at(cell_lengths, idx, a, np.full((1, 3), 0.5))[0])
 
 
 def _measure(tiling, fmap):
@@ -240,13 +240,13 @@ def _measure(tiling, fmap):
     return _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)})
 
 
-def _face_side(geo, f):
+def _face_side(cell_lengths, f):
     """Shorter in-face side of face f through its centre, mm."""
     b, c = _cyclic(f.axis)
     fr = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
     fr[0, f.axis], fr[1, f.axis] = 1.0, 0.0
-    lo = [_len_at(geo, f.lower, x, fr[:1])[0] for x in (b, c)]
-    up = [_len_at(geo, f.upper, x, fr[1:])[0] for x in (b, c)]
+    lo = [_len_at(cell_lengths, f.lower, x, fr[:1])[0] for x in (b, c)]
+    up = [_len_at(cell_lengths, f.upper, x, fr[1:])[0] for x in (b, c)]
     return float(min(lo + up))
 
 
@@ -254,16 +254,17 @@ def _round_down(x, step=0.1):
     return round(float(np.floor(x / step + 1e-9) * step), 6)
 
 
-def default_sizes(tiling, fmap, _geo=None):
+def default_sizes(tiling, fmap, _lengths=None):
     """(radius, length) mm from the typical face and cell: radius 12% of the median face's short side, between
     MIN_RADIUS and DEFAULT_MAX_RADIUS; length 2 radii, at most 35% of the median cell depth, at least MIN_LENGTH;
     rounded down to 0.1 mm. Faces too small for these get smaller pins of their own (place_joints)."""
-    geo = _geo or _measure(tiling, fmap)
+    cell_lengths = _lengths or _measure(tiling, fmap)
     if tiling.faces:
-        side = float(np.median([_face_side(geo, f) for f in tiling.faces]))
-        depth = float(np.median([_center_len(geo, idx, f.axis) for f in tiling.faces for idx in (f.lower, f.upper)]))
+        side = float(np.median([_face_side(cell_lengths, f) for f in tiling.faces]))
+        depth = float(np.median([_center_len(cell_lengths, idx, f.axis) for f in tiling.faces
+                                 for idx in (f.lower, f.upper)]))
     else:
-        side = depth = min(_center_len(geo, idx, a) for idx in tiling.cells for a in range(3))
+        side = depth = min(_center_len(cell_lengths, idx, a) for idx in tiling.cells for a in range(3))
     radius = min(max(_round_down(0.12 * side), MIN_RADIUS), DEFAULT_MAX_RADIUS)
     length = max(_round_down(min(2.0 * radius, 0.35 * depth)), MIN_LENGTH)
     return radius, length
@@ -338,7 +339,7 @@ class _FaceData:
     jac: dict
 
 
-def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
+def _face_data(tiling, fmap, cell_lengths, faces_dirs, reach_max):
     """_FaceData per face; faces_dirs {face number: unit mm direction lower -> upper} fixes the pin direction (a
     split's), else the pin stands normal to the face at each point."""
     out = []
@@ -393,7 +394,7 @@ def _face_data(tiling, fmap, geo, faces_dirs, reach_max):
         for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
             t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
             tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
-        lens = {side: np.stack([_len_at(geo, idx, ax, frs) for ax in range(3)], axis=1)
+        lens = {side: np.stack([_len_at(cell_lengths, idx, ax, frs) for ax in range(3)], axis=1)
                 for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
         sag = np.max(np.abs(np.einsum("kri,ki->kr", xr[n] - x[n][:, None, :], d)), axis=1)
         out.append(_FaceData(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, d, cos, tangents, lens,
@@ -557,9 +558,9 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
         return Layout((), tuple(_contact(f, False, None, "joints.style is none" if style == "none" else None)
                                 for f in tiling.faces))
     space = joint_spec.space
-    geo = _measure(tiling, fmap)
+    cell_lengths = _measure(tiling, fmap)
     r_given, l_given = joint_spec.radius, joint_spec.length
-    r_def, l_def = default_sizes(tiling, fmap, geo)
+    r_def, l_def = default_sizes(tiling, fmap, cell_lengths)
     sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
                    float(joint_spec.clearance), float(joint_spec.axial_clearance), style, joint_spec.shape)
     r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
@@ -575,7 +576,7 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
     r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
 
     dirs = _split_dirs(tiling, fmap, plan) if plan is not None else {}
-    data = _face_data(tiling, fmap, geo, dirs, sizes.reach)
+    data = _face_data(tiling, fmap, cell_lengths, dirs, sizes.reach)
     steps = _size_steps(sizes, r_min, l_min)
     first = {n for n, _ in plan.faces_with_joints} if plan is not None else set()
     smallest = steps[-1]

@@ -26,28 +26,28 @@ def load_model_for(spec):
     from .io import load_model_with_meta
     from .spline.measure import bbox
 
-    ms = spec.model
-    if ms.builtin is not None:
+    model_spec = spec.model
+    if model_spec.builtin is not None:
         from .models import make_builtin
 
-        vol, meta = make_builtin(ms.builtin), {"format": "builtin", "units": "mm"}
-    elif ms.nurbs is not None:
-        vol, meta = load_model_with_meta(ms.nurbs, patch=ms.patch)
-    elif ms.shell is not None:
+        vol, meta = make_builtin(model_spec.builtin), {"format": "builtin", "units": "mm"}
+    elif model_spec.nurbs is not None:
+        vol, meta = load_model_with_meta(model_spec.nurbs, patch=model_spec.patch)
+    elif model_spec.shell is not None:
         from .shell import load_shell
 
         # the thickness is mm of the printed object, so the surface is sized before it is offset
-        shell, scale, meta = load_shell(ms.shell, ms.unit_scale, ms.size, spec.output.tolerance)
+        shell, scale, meta = load_shell(model_spec.shell, model_spec.unit_scale, model_spec.size, spec.output.tolerance)
         return Model(shell.volume, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale,
                                            "shell": shell.info})
     else:
         return _load_mesh_model(spec)
-    scale = ms.unit_scale
+    scale = model_spec.unit_scale
     vol = _scaled(vol, scale)
-    if ms.size is not None:
+    if model_spec.size is not None:
         lo, hi = bbox(vol)
         largest = float(np.max(np.asarray(hi) - np.asarray(lo)))
-        factor = ms.size / largest
+        factor = model_spec.size / largest
         vol = _scaled(vol, factor)
         scale *= factor
     return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale})
@@ -58,12 +58,13 @@ def _load_mesh_model(spec):
     from .cage import check_inside, make_cage
     from .io.mesh import load_mesh_scaled
 
-    ms = spec.model
+    model_spec = spec.model
     if spec.joints.space == "domain" and spec.joints.style != "none":
         raise SpecError("joints.space: pins built in the domain are not supported with a mesh model "
                         "(got domain, expected physical)", source=spec.source)
-    mesh, scale = load_mesh_scaled(ms.mesh, unit_scale=ms.unit_scale, size=ms.size, repair=ms.repair)
-    cage, cage_info = make_cage(mesh, ms.cage, scale=scale,
+    mesh, scale = load_mesh_scaled(model_spec.mesh, unit_scale=model_spec.unit_scale, size=model_spec.size,
+                                   repair=model_spec.repair)
+    cage, cage_info = make_cage(mesh, model_spec.cage, scale=scale,
                                 balance_grid=spec.grid if "balanced" in spec.splits else None)
     check_inside(mesh, cage)
     info = {"format": "mesh", "scale_mm_per_unit": scale, "mesh_triangles": int(len(mesh.faces)),
