@@ -50,6 +50,16 @@ def fail(path, field, message):
     return ModelError(f"{path}: {field}: {message}" if field else f"{path}: {message}")
 
 
+def read_text(path):
+    """The whole text file (undecodable bytes replaced, so that the parser names what is wrong); ModelError when it
+    cannot be read."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return f.read()
+    except OSError as e:
+        raise fail(path, "", f"cannot be read ({e.strerror})") from None
+
+
 def parse_floats(path, field, text):
     """Whitespace-separated numbers -> (n,) float array; a bad token names the field and the token."""
     tokens = text.split()

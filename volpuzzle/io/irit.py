@@ -16,7 +16,7 @@ import re
 
 import numpy as np
 
-from . import fail, make_surface, make_volume
+from . import fail, make_surface, make_volume, read_text
 
 NAME = "irit-itd"
 EXTENSIONS = (".itd", ".dat")
@@ -196,38 +196,24 @@ def _trivar(path, node, label, dims=3):
     return make(path, [k - 1 for k in orders], knots, cps, weights, label=label), periodic
 
 
-def _read_tree(path):
-    try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            text = f.read()
-    except OSError as e:
-        raise fail(path, "", f"cannot be read ({e.strerror})") from None
-    return _tree(path, text)
+def _read_objects(path, kind, dims, noun):
+    """Every `kind` (TRIVAR | SURFACE) object of the file -> (list of Volume | Surface, meta); ModelError when none."""
+    tree = _tree(path, read_text(path))
+    objects, periodic = [], []
+    for i, (node, name) in enumerate(_walk(tree, kind=kind)):
+        obj, per = _trivar(path, node, f"{kind}[{i}]" + (f" (object {name})" if name else ""), dims=dims)
+        objects.append(obj)
+        periodic.append([ax for ax, p in zip("uvw"[:dims], per, strict=True) if p])
+    if not objects:
+        raise fail(path, kind, f"no {noun} in the file: expected a [{kind} BSPLINE ...] or [{kind} BEZIER ...] object")
+    return objects, {"units": None, "periodic_knots": periodic}
 
 
 def read(path):
-    tree = _read_tree(path)
-    vols, periodic = [], []
-    for i, (node, name) in enumerate(_walk(tree)):
-        label = f"TRIVAR[{i}]" + (f" (object {name})" if name else "")
-        vol, per = _trivar(path, node, label)
-        vols.append(vol)
-        periodic.append([ax for ax, p in zip("uvw", per, strict=True) if p])
-    if not vols:
-        raise fail(path, "TRIVAR", "no volume in the file: expected a [TRIVAR BSPLINE ...] or "
-                                   "[TRIVAR BEZIER ...] object")
-    return vols, {"units": None, "periodic_knots": periodic}
+    """Every TRIVAR BSPLINE / BEZIER object in the file -> (list[Volume], meta)."""
+    return _read_objects(path, "TRIVAR", 3, "volume")
 
 
 def read_surfaces(path):
     """Every SURFACE BSPLINE / BEZIER object in the file -> (list[Surface], meta)."""
-    tree = _read_tree(path)
-    surfs, periodic = [], []
-    for i, (node, name) in enumerate(_walk(tree, kind="SURFACE")):
-        surf, per = _trivar(path, node, f"SURFACE[{i}]" + (f" (object {name})" if name else ""), dims=2)
-        surfs.append(surf)
-        periodic.append([ax for ax, p in zip("uv", per, strict=True) if p])
-    if not surfs:
-        raise fail(path, "SURFACE", "no surface in the file: expected a [SURFACE BSPLINE ...] or "
-                                    "[SURFACE BEZIER ...] object")
-    return surfs, {"units": None, "periodic_knots": periodic}
+    return _read_objects(path, "SURFACE", 2, "surface")

@@ -17,7 +17,7 @@ import re
 
 import numpy as np
 
-from . import fail, make_surface
+from . import fail, make_surface, read_text
 
 NAME = "nurbs-text"
 EXTENSIONS = (".nurbs",)
@@ -42,13 +42,8 @@ def _numbers(path, key, body):
 
 
 def _parse(path):
-    try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            text = f.read()
-    except OSError as e:
-        raise fail(path, "", f"cannot be read ({e.strerror})") from None
     entries = {}
-    for m in _ENTRY.finditer(text):
+    for m in _ENTRY.finditer(read_text(path)):
         key, body = m.group(1), m.group(2)
         if key not in _KEYS:
             raise fail(path, key, f"unknown entry (expected one of {', '.join(_KEYS)})")

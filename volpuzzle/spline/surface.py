@@ -13,13 +13,13 @@ import numpy as np
 from ..errors import ModelError
 from . import basis
 from . import knots as knots_mod
-from .volume import Volume, _readonly
+from .volume import TensorSpline, Volume, _readonly
 
 _W_KNOTS = np.array([0.0, 0.0, 1.0, 1.0])
 
 
 @dataclass(frozen=True, eq=False)
-class Surface:
+class Surface(TensorSpline):
     """degrees (2,), knots: two clamped knot vectors, control_points (n_u, n_v, 3), weights (n_u, n_v) or None."""
 
     degrees: tuple
@@ -57,20 +57,6 @@ class Surface:
         return cls(degrees, knots, hpoints[..., :3] / w[..., None], w if rational else None)
 
     # --- shape -------------------------------------------------------------------------------------------
-    @property
-    def shape(self):
-        """(n_u, n_v)."""
-        return self.control_points.shape[:2]
-
-    @property
-    def is_rational(self):
-        return self.weights is not None
-
-    @property
-    def domain(self):
-        """((u0, u1), (v0, v1))."""
-        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees, strict=True))
-
     def homogeneous(self):
         """(n_u, n_v, 4): weighted points (w*x, w*y, w*z, w)."""
         w = np.ones(self.shape) if self.weights is None else self.weights

@@ -66,8 +66,26 @@ def _readonly(a):
     return a
 
 
+class TensorSpline:
+    """What a tensor-product NURBS (Volume, Surface) derives alike from its degrees, knots and weights."""
+
+    @property
+    def shape(self):
+        """Control points per axis: (n_u, n_v, n_w) or (n_u, n_v)."""
+        return self.control_points.shape[:len(self.degrees)]
+
+    @property
+    def is_rational(self):
+        return self.weights is not None
+
+    @property
+    def domain(self):
+        """((u0, u1), (v0, v1)[, (w0, w1)])."""
+        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees, strict=True))
+
+
 @dataclass(frozen=True, eq=False)
-class Volume:
+class Volume(TensorSpline):
     """degrees (3,), knots: three clamped knot vectors, control_points (n_u, n_v, n_w, 3), weights or None."""
 
     degrees: tuple
@@ -153,20 +171,6 @@ class Volume:
         return k
 
     # --- shape -------------------------------------------------------------------------------------------
-    @property
-    def shape(self):
-        """(n_u, n_v, n_w): control points per axis."""
-        return self.control_points.shape[:3]
-
-    @property
-    def is_rational(self):
-        return self.weights is not None
-
-    @property
-    def domain(self):
-        """((u0, u1), (v0, v1), (w0, w1))."""
-        return tuple((float(k[p]), float(k[-p - 1])) for k, p in zip(self.knots, self.degrees, strict=True))
-
     @property
     def domain_array(self):
         """(2, 3): row 0 the minimum parameters, row 1 the maximum."""
