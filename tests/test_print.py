@@ -164,20 +164,26 @@ def test_a_small_round_piece_gets_a_deeper_cut_rather_than_too_little_bed():
     assert bed_contact(placed.vertices, placed.faces) >= MIN_BED_MM2
 
 
-def test_a_build_whose_piece_would_rest_on_too_little_bed_is_refused(tmp_path, monkeypatch):
+def _small_shell_build_is_refused(tmp_path, pattern):
+    """A 2x2x1 sphere shell build fails with GeometryError matching pattern, and writes no folder."""
     from helpers_build import example_spec
 
     import volpuzzle
-    from volpuzzle import layout
     from volpuzzle.errors import GeometryError
+
+    spec = example_spec("sphere-shell", tmp_path, tolerance=1.0, grid=[2, 2, 1], randomize=None)
+    with pytest.raises(GeometryError, match=pattern):
+        volpuzzle.build(spec, jobs=1)
+    assert not (tmp_path / "out" / "sphere-shell").exists()
+
+
+def test_a_build_whose_piece_would_rest_on_too_little_bed_is_refused(tmp_path, monkeypatch):
+    from volpuzzle import layout
 
     # as if every piece, laid out, touched the bed on 5 mm^2: `check` would refuse the folder, so the build must
     monkeypatch.setattr(layout, "bed_contact", lambda *_args, **_kwargs: 5.0)
-    spec = example_spec("sphere-shell", tmp_path, tolerance=1.0, grid=[2, 2, 1], randomize=None)
-    with pytest.raises(GeometryError, match=r"sphere-shell: pieces p0-0-0, .* rest on less than 10 mm\^2 of the bed "
-                                            r"even with a base cut of [0-9.]+ mm \(expected at least 10 mm\^2 each"):
-        volpuzzle.build(spec, jobs=1)
-    assert not (tmp_path / "out" / "sphere-shell").exists()
+    _small_shell_build_is_refused(tmp_path, r"sphere-shell: pieces p0-0-0, .* rest on less than 10 mm\^2 of the bed "
+                                            r"even with a base cut of [0-9.]+ mm \(expected at least 10 mm\^2 each")
 
 
 def test_a_flat_face_needs_no_cut_and_pins_go_up():
@@ -322,19 +328,12 @@ def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():
 
 
 def test_a_build_whose_facing_cut_faces_close_is_refused_before_it_is_written(tmp_path, monkeypatch):
-    from helpers_build import example_spec
-
-    import volpuzzle
     from volpuzzle import check
-    from volpuzzle.errors import GeometryError
 
     # as if two neighbours' cut faces met (median gap 0 where the face clearance asks 0.15 mm): check would refuse
     monkeypatch.setattr(check, "_face_gaps", lambda meshes, *_args: [(sorted(meshes)[0], sorted(meshes)[1], 0.0, 0.0)])
-    spec = example_spec("sphere-shell", tmp_path, tolerance=1.0, grid=[2, 2, 1], randomize=None)
-    with pytest.raises(GeometryError, match=r"sphere-shell: not printable as laid out: pieces p0-0-0 and p0-1-0 face "
-                                            r"each other 0.000 mm apart .*expected the face clearance 0.15 mm"):
-        volpuzzle.build(spec, jobs=1)
-    assert not (tmp_path / "out" / "sphere-shell").exists()
+    _small_shell_build_is_refused(tmp_path, r"sphere-shell: not printable as laid out: pieces p0-0-0 and p0-1-0 face "
+                                            r"each other 0.000 mm apart .*expected the face clearance 0.15 mm")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
