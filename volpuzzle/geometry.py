@@ -14,6 +14,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import GeometryError
+from .grid import frame_from_direction
 
 # id(mesh) -> (weak reference, content hash, {what: result}). A build judges the same piece meshes several times
 # (closed when they are made printable and again in the checks; as solids in the overlap check and again in the
@@ -90,8 +91,6 @@ def from_trimesh(mesh, what):
 def cylinder(center, direction, radius, start, stop, what, segments=48):
     """A Manifold cylinder of `radius` along `direction` (3,), from center + start * d to center + stop * d (d the
     unit direction), its local frame that of grid.frame_from_direction; status checked, naming `what`."""
-    from .grid import frame_from_direction
-
     d = np.asarray(direction, dtype=float)
     e1, e2, n = frame_from_direction(d / np.linalg.norm(d))
     frame = np.zeros((3, 4))
