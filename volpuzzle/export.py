@@ -93,6 +93,16 @@ def report_piece_entry(piece, file) -> dict:
 
 def clean_json(x):
     """Plain JSON values: numpy -> Python, tuples -> lists, floats to 9 significant digits, nan/inf -> None."""
+    # the plain types a report is mostly made of first, by exact type: a report has tens of thousands of values
+    t = type(x)
+    if t is float:
+        return float(f"{x:.{_DIGITS}g}") if math.isfinite(x) else None
+    if t is str or t is int or t is bool or x is None:
+        return x
+    if t is list:
+        return [clean_json(v) for v in x]
+    if t is dict:
+        return {str(k): clean_json(v) for k, v in x.items()}
     if isinstance(x, Mapping):
         return {str(k): clean_json(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -125,9 +135,11 @@ def dumps_report(obj, indent: int = 2, _level: int = 0) -> str:
         body = [f"{inner}{json.dumps(k)}: {dumps_report(v, indent, _level + 1)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(body) + "\n" + pad + "}"
     if isinstance(obj, list):
-        flat = json.dumps(obj, allow_nan=False)
-        if not obj or (len(flat) <= 80 and all(not isinstance(v, dict) for v in obj)):
-            return flat
+        # a list holding a dict is never kept on one line: no need to write it out whole to measure it
+        if not obj or all(not isinstance(v, dict) for v in obj):
+            flat = json.dumps(obj, allow_nan=False)
+            if len(flat) <= 80:
+                return flat
         return "[\n" + ",\n".join(inner + dumps_report(v, indent, _level + 1) for v in obj) + "\n" + pad + "]"
     return json.dumps(obj, allow_nan=False)
 

@@ -415,7 +415,8 @@ def _face_samples(cell, fmap, a, side):
 
 def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM, rank=None,
                 region=None):
-    """Every (centre, direction) on one face -> list of (sort key, site arguments). rank: the face's class in the
+    """Every (centre, direction) on one face that holds the text -> _Cands (their sort keys and site arguments as
+    arrays: a mesh model's faces give tens of thousands, of which a few are measured). rank: the face's class in the
     site rule (default: has_joint); region: a _BodyFaces of the piece, whose real outline on the face then keeps the
     text in as the face's own edge does, and whose centres must lie on the piece."""
     b, c = _cyclic(a)
@@ -452,16 +453,43 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     right = np.cross(up, normals2)
     # the face's outline and the joint axes, seen along the normal
     height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
-    out = []
-    for j in np.flatnonzero(ok & (height >= hmin)):
-        k, i = divmod(int(j), len(x0))
-        u = up[j]
-        # upright text where the face allows it: up turned to the global +z, so labels read alike
-        if u[2] < -1e-9 or (abs(u[2]) <= 1e-9 and (u[1] < -1e-9 or (abs(u[1]) <= 1e-9 and u[0] < 0))):
-            u = -u
-        key = (int(has_joint if rank is None else rank), -round(float(height[j]), 3), off_centre[i], order, k, i)
-        out.append((key, (x0[i], normals[i], u, float(height[j]), uvw[i])))
-    return out
+    j = np.flatnonzero(ok & (height >= hmin))
+    k, i = np.divmod(j, len(x0))
+    u = up[j]
+    # upright text where the face allows it: up turned to the global +z, so labels read alike
+    flip = (u[:, 2] < -1e-9) | ((np.abs(u[:, 2]) <= 1e-9)
+                                & ((u[:, 1] < -1e-9) | ((np.abs(u[:, 1]) <= 1e-9) & (u[:, 0] < 0))))
+    u = np.where(flip[:, None], -u, u)
+    h = height[j]
+    # Python's round (correctly rounded, unlike np.round's scaling) keeps the order the site rule always had
+    neg_h = np.array([-round(v, 3) for v in h.tolist()], dtype=float)
+    return _Cands(int(has_joint if rank is None else rank), neg_h, off_centre[i], int(order), k, i, x0, normals, u, h,
+                  uvw)
+
+
+@dataclass(frozen=True, eq=False)
+class _Cands:
+    """The candidates of one face (_candidates), c of them: the sort key of each (rank, -height rounded to 0.001 mm,
+    distance of the centre from the face's centre in face fractions, the face's order, direction k, centre i; (c,)
+    arrays but rank and order) and what _make_site needs: centres x0 (n, 3), normals (n, 3) and parameters uvw (n, 3)
+    of the face's n samples (indexed by i), the text's up (c, 3) and height (c,)."""
+
+    rank: int
+    neg_height: np.ndarray
+    off_centre: np.ndarray
+    order: int
+    k: np.ndarray
+    i: np.ndarray
+    x0: np.ndarray
+    normals: np.ndarray
+    up: np.ndarray
+    height: np.ndarray
+    uvw: np.ndarray
+
+    def args(self, c):
+        """The site arguments of candidate c: (centre, normal, up, height, uvw)."""
+        i = self.i[c]
+        return self.x0[i], self.normals[i], self.up[c], float(self.height[c]), self.uvw[i]
 
 
 def _on_face(cell, fmap, a, uvw0, center, normal, up, target, st, inv=None):
@@ -648,19 +676,30 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
             n = len(faces)
             faces += [(2 if hidden else 3, n + k, a, side, False)
                       for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
-        cands = []
-        for r, order, a, side, hj in faces:
-            if r != rank:
-                continue
-            for key, args in _candidates(cell, fmap, a, side, hj, axes_pts, axes_r, text, depth, order, stroke,
-                                         rank=rank, region=region):
-                cands.append((key, a, side, hj, args))
-        if avoid is not None:
-            cands = [c for c in cands if float(np.dot(c[4][1], avoid)) <= _AVOID_COS]
-        cands.sort(key=lambda c: c[0])
+        found = [(_candidates(cell, fmap, a, side, hj, axes_pts, axes_r, text, depth, order, stroke, rank=rank,
+                              region=region), a, side, hj)
+                 for r, order, a, side, hj in faces if r == rank]
+        found = [f for f in found if len(f[0].k)]
+        if not found:
+            continue
+        # every candidate of the class in the order of its key (rank, -height, off centre, face order, k, i): the
+        # keys are distinct, so this is the order a sort of the key tuples gives
+        face = np.concatenate([np.full(len(f[0].k), n) for n, f in enumerate(found)])
+        at = np.concatenate([np.arange(len(f[0].k)) for f in found])
+        key = [np.concatenate([getattr(f[0], name) for f in found]) for name in ("i", "k")]
+        key += [np.repeat([f[0].order for f in found], [len(f[0].k) for f in found])]
+        key += [np.concatenate([getattr(f[0], name) for f in found]) for name in ("off_centre", "neg_height")]
         # each class measures `tries` candidates of its own: a crowded inner face whose small spots turn out too
         # curved must not use up the tries of a clear face further down the list
-        for _, a, side, hj, args in cands[:tries]:
+        left = tries
+        for c in np.lexsort(key).tolist():
+            if left <= 0:
+                break
+            cands, a, side, hj = found[face[c]]
+            args = cands.args(at[c])
+            if avoid is not None and float(np.dot(args[1], avoid)) > _AVOID_COS:
+                continue
+            left -= 1
             site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
             if site is not None:
                 yield site
@@ -901,9 +940,12 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
         off = False
         for stroke in STROKES_MM:
             for t in texts:
-                for site in label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
-                                        avoid=avoid, region=region):
-                    if tries <= 0:
+                sites = label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
+                                    avoid=avoid, region=region)
+                # the budget is looked at before the next site is asked for: each one costs a surface measurement
+                while tries > 0:
+                    site = next(sites, None)
+                    if site is None:
                         break
                     tries -= 1
                     if float(np.mean(_measured(body, site, arrays)[1])) < 0.98:
