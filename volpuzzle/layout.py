@@ -151,16 +151,30 @@ def _choose(mesh, pin_directions=(), hole_openings=()):
             int(holes_down[best])), hull
 
 
-def _orient(mesh, pin_directions=(), hole_openings=(), down=None):
+def _hull_points(mesh):
+    """The vertices (k, 3) of trimesh's convex_hull of the mesh, in its order (qhull's, same options, by index), without
+    building the hull's mesh, which costs a third more than qhull itself and is not needed where only the extreme
+    points are."""
+    from scipy.spatial import QhullError
+
+    points = mesh.vertices.view(np.ndarray)
+    try:
+        hull = ConvexHull(points, qhull_options="QbB Pp Qt")
+    except QhullError:  # trimesh retries such a (flat, degenerate) point set its own way
+        return mesh.convex_hull.vertices.view(np.ndarray)
+    return points[np.sort(hull.vertices)]
+
+
+def _orient(mesh, pin_directions=(), hole_openings=(), down=None, hull_points=None):
     """print_orientation's rotation, and the piece's convex-hull vertices (all its extreme points). down: the
-    assembled direction to put on the bed, when already chosen."""
+    assembled direction to put on the bed, when already chosen; hull_points: those vertices, when known."""
     if down is None:
         (down, *_), hull = _choose(mesh, pin_directions, hole_openings)
-    else:
-        hull = mesh.convex_hull
+        hull_points = hull.vertices.view(np.ndarray)
+    elif hull_points is None:
+        hull_points = _hull_points(mesh)
     rot = trimesh.geometry.align_vectors(np.asarray(down, float), [0.0, 0.0, -1.0])
     # Then turn about z so that the footprint's bounding rectangle is smallest.
-    hull_points = hull.vertices.view(np.ndarray)
     pts = hull_points @ rot[:3, :3].T
     t2d, _ = trimesh.bounds.oriented_bounds_2D(pts[:, :2])
     spin = np.eye(4)
@@ -197,12 +211,14 @@ def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None):
     direction to put on the bed, when the caller has chosen it (a dowel on its side)."""
     from .geometry import solid_of
 
+    hull_points = None
     if down is None:
         (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
+        hull_points = hull.vertices.view(np.ndarray)
     else:
         down = np.asarray(down, float) / max(float(np.linalg.norm(down)), 1e-300)
         pins_down = pins_up = holes_down = 0
-    rot, hull_points = _orient(mesh, down=down)
+    rot, hull_points = _orient(mesh, down=down, hull_points=hull_points)
     footprint = _hull_area(trimesh.transform_points(hull_points, rot)[:, :2])
     target = max(BASE_TARGET[0], BASE_TARGET[1] * footprint)
     solid = solid_of(mesh, "piece").transform(rot[:3, :])  # the label stage engraves the same solid
