@@ -219,3 +219,23 @@ def test_step_pictures_show_the_pieces_in_place_grey_and_the_block_added_in_its_
     b_rows = rows[(second[..., 2] > second[..., 0] + 60).any(axis=1)]
     g = (np.ptp(second, axis=2) < 4) & (second[..., 0] > 60) & (second[..., 0] < 250)
     assert b_rows.mean() < rows[g.any(axis=1)].mean() - 20
+
+
+def test_hull_points_are_trimeshs_hull_vertices():
+    # layout packs on the hull's extreme points taken straight from qhull; they must be the very points (and order)
+    # of trimesh's convex_hull, or plates would move
+    from volpuzzle.layout import _hull_points
+
+    rng = np.random.default_rng(7)
+    meshes = [trimesh.creation.icosphere(subdivisions=3), trimesh.creation.box([10, 30, 50]),
+              trimesh.creation.cylinder(radius=4.0, height=12.0, sections=48)]
+    bumpy = trimesh.creation.icosphere(subdivisions=3)
+    bumpy.vertices *= rng.uniform(0.8, 1.2, (len(bumpy.vertices), 1))  # some vertices fall inside the hull
+    meshes.append(bumpy)
+    for k, mesh in enumerate(meshes):
+        mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        fast = _hull_points(mesh)
+        if k == len(meshes) - 1:
+            assert len(fast) < len(mesh.vertices)  # the test reaches points that are not on the hull
+        np.testing.assert_array_equal(fast, trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+                                      .convex_hull.vertices)
