@@ -656,12 +656,14 @@ def _outer_faces(cell, tiling, fmap):
 
 
 def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MIN_STROKE_MM, tries=64, avoid=None,
-                region=None, outer=True):
+                region=None, outer=True, measured=None):
     """The places for the cell's label, best first (rule in the module docstring): LabelSites that hold `text`
     (default: the piece id) with strokes of at least `stroke` mm, at most `tries` candidates measured per class; none
     whose normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate).
     region: the piece's _BodyFaces, to keep the text on the piece's real faces (a mesh model's piece covers only part
-    of its cage cell's faces). outer: also D's outer faces, after every inner one (the hidden ones first)."""
+    of its cage cell's faces). outer: also D's outer faces, after every inner one (the hidden ones first).
+    measured: a dict that keeps the sites measured, for calls on the same cell, map and joints (label_piece's): a
+    finer stroke ranks the same sites first, and each costs a surface measurement."""
     text = str(text if text is not None else cell.id)
     if not _outline(text)[0]:
         return
@@ -700,7 +702,14 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
             if avoid is not None and float(np.dot(args[1], avoid)) > _AVOID_COS:
                 continue
             left -= 1
-            site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
+            if measured is None:
+                site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
+            else:
+                # the site is fixed by its face, sample, direction and height (args follow from those)
+                known = (text, a, side, hj, rank >= 2, int(cands.i[at[c]]), int(cands.k[at[c]]), args[3])
+                if known not in measured:
+                    measured[known] = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
+                site = measured[known]
             if site is not None:
                 yield site
 
@@ -935,20 +944,24 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
     region = None
     budget = tries
     arrays = _mesh_arrays(body)  # the body's triangles, once for every site measured on it
+    measured = {}  # sites, for label_sites: each finer stroke and each pass tries the best ones again
+    on_body = {}  # id of a site -> (the site, whether its text lies on the body)
     for _ in range(2):
         tries = budget
         off = False
         for stroke in STROKES_MM:
             for t in texts:
                 sites = label_sites(cell, tiling, fmap, joints, text=t, depth=depth, stroke=stroke, tries=16,
-                                    avoid=avoid, region=region)
+                                    avoid=avoid, region=region, measured=measured)
                 # the budget is looked at before the next site is asked for: each one costs a surface measurement
                 while tries > 0:
                     site = next(sites, None)
                     if site is None:
                         break
                     tries -= 1
-                    if float(np.mean(_measured(body, site, arrays)[1])) < 0.98:
+                    if id(site) not in on_body:
+                        on_body[id(site)] = site, float(np.mean(_measured(body, site, arrays)[1])) >= 0.98
+                    if not on_body[id(site)][1]:
                         reasons.append("off the piece")
                         off = True
                         continue
