@@ -413,16 +413,13 @@ def _face_samples(cell, fmap, a, side):
     return faces[key]
 
 
-def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM, rank=None,
-                region=None):
-    """Every (centre, direction) on one face that holds the text -> _Cands (their sort keys and site arguments as
-    arrays: a mesh model's faces give tens of thousands, of which a few are measured). rank: the face's class in the
-    site rule (default: has_joint); region: a _BodyFaces of the piece, whose real outline on the face then keeps the
-    text in as the face's own edge does, and whose centres must lie on the piece."""
+def _face_frames(cell, fmap, a, side, axes_pts, axes_r, depth, region=None):
+    """What _candidates needs of a face whatever the text: face fractions' distance from the face's centre (n,),
+    parameters uvw (n, 3), points x0 (n, 3) and outward normals (n, 3) of its n samples; for both text directions
+    (2n rows: up along either in-face parameter) the centres relative to the face's mean point, normals, up and
+    right (2n, 3) and which may hold text (2n,); and the keep-out points (_keep_out) of its outline and the joint
+    axes."""
     b, c = _cyclic(a)
-    ink_w, ink_h = _ink(text)
-    aspect = ink_w / ink_h
-    hmin = min_height_mm(text, stroke)
     fb, fc, uvw, x0, jac, edge = _face_samples(cell, fmap, a, side)
     normals = _outward(jac, a, side, int(getattr(fmap, "orientation", 1) or 1))
     good = np.any(normals != 0, axis=1)
@@ -451,6 +448,26 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     ok = np.concatenate([on_piece, on_piece]) & (size > 1e-12)
     up = up / np.maximum(size, 1e-300)[:, None]
     right = np.cross(up, normals2)
+    return off_centre, uvw, x0, normals, x0_2, normals2, up, right, ok, ko
+
+
+def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, order, stroke=MIN_STROKE_MM, rank=None,
+                region=None, memo=None):
+    """Every (centre, direction) on one face that holds the text -> _Cands (their sort keys and site arguments as
+    arrays: a mesh model's faces give tens of thousands, of which a few are measured). rank: the face's class in the
+    site rule (default: has_joint); region: a _BodyFaces of the piece, whose real outline on the face then keeps the
+    text in as the face's own edge does, and whose centres must lie on the piece. memo: a dict for the face's
+    _face_frames, for calls on the same cell, map, joints and depth."""
+    ink_w, ink_h = _ink(text)
+    aspect = ink_w / ink_h
+    hmin = min_height_mm(text, stroke)
+    key = ("face", int(a), int(side), id(region))
+    frames = None if memo is None else memo.get(key)
+    if frames is None:
+        frames = _face_frames(cell, fmap, a, side, axes_pts, axes_r, depth, region)
+        if memo is not None:
+            memo[key] = frames + (region,)  # the region kept alive, so that its id stays its own
+    off_centre, uvw, x0, normals, x0_2, normals2, up, right, ok, ko = frames[:10]
     # the face's outline and the joint axes, seen along the normal
     height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
     j = np.flatnonzero(ok & (height >= hmin))
@@ -662,8 +679,8 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
     whose normal is within 45 degrees of `avoid` (3,) (the bed, where the text would print upside down on the plate).
     region: the piece's _BodyFaces, to keep the text on the piece's real faces (a mesh model's piece covers only part
     of its cage cell's faces). outer: also D's outer faces, after every inner one (the hidden ones first).
-    measured: a dict that keeps the sites measured, for calls on the same cell, map and joints (label_piece's): a
-    finer stroke ranks the same sites first, and each costs a surface measurement."""
+    measured: a dict that keeps the sites measured and the faces' frames, for calls on the same cell, map, joints
+    and depth (label_piece's): a finer stroke ranks the same sites first, and each costs a surface measurement."""
     text = str(text if text is not None else cell.id)
     if not _outline(text)[0]:
         return
@@ -679,7 +696,7 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
             faces += [(2 if hidden else 3, n + k, a, side, False)
                       for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
         found = [(_candidates(cell, fmap, a, side, hj, axes_pts, axes_r, text, depth, order, stroke, rank=rank,
-                              region=region), a, side, hj)
+                              region=region, memo=measured), a, side, hj)
                  for r, order, a, side, hj in faces if r == rank]
         found = [f for f in found if len(f[0].k)]
         if not found:
@@ -706,7 +723,7 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
                 site = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
             else:
                 # the site is fixed by its face, sample, direction and height (args follow from those)
-                known = (text, a, side, hj, rank >= 2, int(cands.i[at[c]]), int(cands.k[at[c]]), args[3])
+                known = ("site", text, a, side, hj, rank >= 2, int(cands.i[at[c]]), int(cands.k[at[c]]), args[3])
                 if known not in measured:
                     measured[known] = _make_site(cell, fmap, a, side, hj, args, text, outer=rank >= 2)
                 site = measured[known]
