@@ -80,7 +80,17 @@ def _outline(text):
 
     if not text.strip():
         return (), np.zeros((2, 2))
-    path = TextPath((0.0, 0.0), text, size=1.0, prop=_font())
+    if "$" in text or "\\" in text:  # mathtext, or an escaped dollar: TextPath's own parsing
+        path = TextPath((0.0, 0.0), text, size=1.0, prop=_font())
+    else:
+        # what TextPath does for plain text, without importing matplotlib's artists for its one question (is this
+        # mathtext?): the glyphs at FONT_SCALE, scaled to 1 em
+        from matplotlib.textpath import text_to_path
+        from matplotlib.transforms import Affine2D
+
+        raw = Path(*text_to_path.get_text_path(_font(), text, ismath=False))
+        path = Path(Affine2D().scale(1.0 / text_to_path.FONT_SCALE).translate(0.0, 0.0).transform(raw.vertices),
+                    raw.codes)
     verts, codes = np.asarray(path.vertices, dtype=float), path.codes
     if codes is None or not np.isin(codes, (Path.MOVETO, Path.LINETO, Path.CURVE3, Path.CLOSEPOLY, Path.STOP)).all():
         return _outline_slow(path)  # cubic curves (not in TrueType fonts) or anything else unexpected
