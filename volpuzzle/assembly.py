@@ -120,11 +120,21 @@ def _face_normals(tiling, fmap, numbers):
     return np.array(out), np.array(area)
 
 
-def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
+SEARCH_CELLS = 64  # tilings up to this many cells get the plan search (holds)
+TURN_FACES = 4  # a split of at most this many faces may turn its pins off its mean normal to hold more of them
+MAX_TURN_DEG = 20.0  # how far: within the 30 deg a pin may lean, so that the mean normal's own faces still can
+SEARCH_SPLITS = 4000  # the search tries every plane when blocks x planes are at most this many, else middle cuts
+
+
+def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=None):
     """The tree of splits and the faces that carry joints -> AssemblyPlan.
 
     fmap (optional, volpuzzle.mapping.Map or anything with evaluate_with_jacobian): used to pick the widest crossing
     face for a split's joint and to add joints on crossing faces whose normals are within max_angle_deg of it.
+    holds (optional, with fmap): holds(face number, unit mm direction (3,) from its lower cell to its upper one) ->
+    whether that face holds a pin along it (volpuzzle.joint). Each block is then cut along the axis whose tree of
+    splits leaves the fewest faces that cannot hold a pin along their split's sliding direction (_PlanSearch), the
+    longest axis among equals; without it, along the longest axis.
     """
     grid = tiling.grid
     faces = list(tiling.faces)
@@ -170,6 +180,21 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
               if area[k] > 0.25 * area[best] and float(normals[k] @ normals[best]) >= cos_max]
         return sorted(set(ok) | {cands[best]})
 
+    def longest(cells):
+        """The axis a block is cut across without a search: the most cells, then the longest in mm."""
+        idx = np.array(cells)
+        spans = [len(np.unique(idx[:, x])) for x in range(3)]
+        if fmap is not None:
+            # physical length of the block along each axis breaks ties between equal counts
+            c = tiling.cells[tuple(cells[0])].box.mean(axis=0)
+            _, jac = fmap.evaluate_with_jacobian(c[None])
+            lo = np.array([tiling.breaks[x][idx[:, x].min()] for x in range(3)])
+            hi = np.array([tiling.breaks[x][idx[:, x].max() + 1] for x in range(3)])
+            size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
+        else:
+            size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
+        return max(range(3), key=lambda x: (spans[x], size[x]))
+
     def split(cells, open_axes):
         """Assembly steps for the block `cells` (a list of indices); open_axes: periodic axes already cut."""
         if len(cells) == 1:
@@ -190,27 +215,26 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             split(moving, open_axes | {a})
             steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), True))
             return
-        spans = [len(np.unique(idx[:, x])) for x in range(3)]
-        if fmap is not None:
-            # physical length of the block along each axis breaks ties between equal counts
-            c = tiling.cells[tuple(cells[0])].box.mean(axis=0)
-            _, jac = fmap.evaluate_with_jacobian(c[None])
-            lo = np.array([tiling.breaks[x][idx[:, x].min()] for x in range(3)])
-            hi = np.array([tiling.breaks[x][idx[:, x].max() + 1] for x in range(3)])
-            size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
+        if search is not None:
+            a, p = search.cut(cells)
+            fixed, moving = [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
         else:
-            size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
-        a = max(range(3), key=lambda x: (spans[x], size[x]))
-        fixed, moving = _halves(cells, a)
+            a = longest(cells)
+            fixed, moving = _halves(cells, a)
         cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
         chosen = choose(cand, a, mid_lo)
         jointed.extend(chosen)
         split(fixed, open_axes)
         split(moving, open_axes)
-        steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), False))
+        slide = search.slide(moving, fixed) if search is not None else None
+        steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), False,
+                          None if slide is None else tuple(float(x) for x in slide)))
 
     cells = sorted(tiling.cells)
+    search = None
+    if holds is not None and fmap is not None and len(cells) <= SEARCH_CELLS:
+        search = _PlanSearch(tiling, fmap, holds, longest)
     split(cells, frozenset())
     order = []
     # placement order: the fixed block first, then the moving one, recursively
@@ -227,6 +251,123 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
     walk(cells)
     faces_with_joints = tuple((n, "lower") for n in sorted(set(jointed)))
     return AssemblyPlan(faces_with_joints, tuple(reversed(steps)), tuple(order))
+
+
+class _PlanSearch:
+    """Where each open block of a tiling is cut (an axis and a grid plane across it), so that the whole tree of
+    splits below it leaves the fewest faces unable to hold a pin along their split's sliding direction (the
+    area-weighted mean normal of the split's whole surface, as split_directions gives it); among equals the most
+    even cuts, then the plan without a search (the middle of the longest axis) as often as it can.
+
+    A split's direction suits the faces near its middle; on a curved block, the faces at its ends lean by up to the
+    block's bend (the duck's half ring, cut across u, leaned 24 deg off its end faces). Cutting the other way first
+    leaves smaller blocks, whose splits bend less. Blocks are memoized, each scored once per cut: every plane is
+    tried while the sub-blocks are few (SEARCH_SPLITS), else only the middle one of each axis."""
+
+    def __init__(self, tiling, fmap, holds, longest, k=7):
+        self.tiling, self.holds, self.longest = tiling, holds, longest
+        self.faces = list(tiling.faces)
+        self._normals = _face_normal_grids(tiling, fmap, range(len(self.faces)), k)
+        self._by_cell = {}
+        for n, f in enumerate(self.faces):
+            self._by_cell.setdefault(tuple(f.lower), []).append(n)
+        self._memo, self._lost = {}, {}
+        counts = [int(x) for x in tiling.grid]
+        boxes = int(np.prod([n * (n + 1) // 2 for n in counts]))
+        self.every_plane = boxes * sum(n - 1 for n in counts) <= SEARCH_SPLITS
+
+    def lost(self, moving, fixed):
+        """(faces across the split that cannot hold a pin along its sliding direction, that direction (3,) from fixed
+        to moving or None). The direction is the mean normal of the split's surface; where that loses a face of a
+        split of at most TURN_FACES faces, the directions within MAX_TURN_DEG of it that keep every normal of the
+        surface ahead (the block still leaves without touching) are tried, and the one holding the most wins."""
+        key = (frozenset(moving), frozenset(fixed))
+        if key in self._lost:
+            return self._lost[key]
+        mv, fx = set(moving), set(fixed)
+        across, normals = [], []
+        for c in list(mv) + list(fx):
+            for n in self._by_cell.get(c, ()):
+                up = tuple(self.faces[n].upper)
+                if (c in mv and up in fx) or (c in fx and up in mv):
+                    sign = 1.0 if up in mv else -1.0
+                    across.append((n, sign))
+                    normals.append(sign * self._normals[n])
+        total = np.concatenate(normals).sum(axis=0) if normals else np.zeros(3)
+        size = float(np.linalg.norm(total))
+        if size < 1e-12:
+            self._lost[key] = (len(across), None)
+            return self._lost[key]
+        d = total / size
+
+        def lost_along(e):
+            return sum(not self.holds(n, sign * e) for n, sign in across)
+
+        out = (lost_along(d), d)
+        if out[0] and len(across) <= TURN_FACES:
+            unit = np.concatenate(normals)
+            unit = unit / np.maximum(np.linalg.norm(unit, axis=1), 1e-300)[:, None]
+            faces = [m.sum(axis=0) / max(float(np.linalg.norm(m.sum(axis=0))), 1e-300) for m in normals]
+            for e in sorted(list(_cap(d, MAX_TURN_DEG)) + faces, key=lambda e: -float(e @ d)):
+                if float((unit @ e).min()) <= 0.0 or float(e @ d) < np.cos(np.radians(MAX_TURN_DEG)) - 1e-9:
+                    continue
+                got = lost_along(e)
+                if got < out[0]:
+                    out = (got, e)
+                    if got == 0:
+                        break
+        self._lost[key] = out
+        return out
+
+    def best(self, cells):
+        """((faces lost, uneven cells, cuts off the plain plan) of the block's best tree, (axis, plane)), the plane
+        being the least index of the moving part along axis; axis -1 for a single cell."""
+        key = frozenset(cells)
+        if key in self._memo:
+            return self._memo[key]
+        idx = np.array(cells)
+        out = None
+        default = None
+        for a in range(3):
+            vals = np.unique(idx[:, a])
+            if len(vals) < 2:
+                continue
+            if default is None:
+                default = self.longest(cells)
+                plain = np.unique(idx[:, default])
+                plain = (default, int(plain[len(plain) // 2]))
+            for p in (vals[1:] if self.every_plane else [vals[len(vals) // 2]]):
+                fixed = [c for c in cells if c[a] < p]
+                moving = [c for c in cells if c[a] >= p]
+                lo, hi = self.best(fixed)[0], self.best(moving)[0]
+                cut = (a, int(p))
+                cost = (self.lost(moving, fixed)[0] + lo[0] + hi[0], abs(len(moving) - len(fixed)) + lo[1] + hi[1],
+                        int(cut != plain) + lo[2] + hi[2])
+                if out is None or cost < out[0]:
+                    out = (cost, cut)
+        self._memo[key] = out if out is not None else ((0, 0, 0), (-1, 0))
+        return self._memo[key]
+
+    def cut(self, cells):
+        """(axis, plane) to cut the block across: cells with index >= plane along axis move."""
+        return self.best(sorted(tuple(c) for c in cells))[1]
+
+    def slide(self, moving, fixed):
+        """The direction (3,) from fixed to moving that the split's pins point along, or None."""
+        return self.lost(moving, fixed)[1]
+
+
+def _cap(d, angle_deg, count=48):
+    """count unit vectors (count, 3) spread evenly over the cap of half-angle angle_deg round the unit d."""
+    i = np.arange(count) + 0.5
+    z = 1.0 - (1.0 - np.cos(np.radians(angle_deg))) * i / count
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    return local @ np.array([e1, e2, d])
 
 
 def joint_faces(tiling, plan):
@@ -296,26 +437,44 @@ def _halves(cells, a):
     return [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
 
 
+def _face_normal_grids(tiling, fmap, numbers, k=7):
+    """Per face number, area-weighted mm normals (k * k, 3) on a k x k grid over the face, from its lower cell to its
+    upper one (one evaluation of F for all of them)."""
+    numbers = list(numbers)
+    if not numbers:
+        return []
+    s = (np.arange(k) + 0.5) / k
+    uvw = np.zeros((len(numbers), k * k, 3))
+    for i, n in enumerate(numbers):
+        f = tiling.faces[n]
+        box = tiling.cells[tuple(f.lower)].box
+        a = f.axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        uvw[i, :, a] = box[1, a]
+        uvw[i, :, b] = box[0, b] + np.repeat(s, k) * (box[1, b] - box[0, b])
+        uvw[i, :, c] = box[0, c] + np.tile(s, k) * (box[1, c] - box[0, c])
+    _, jac = fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+    jac = jac.reshape(len(numbers), k * k, 3, 3)
+    orient = float(getattr(fmap, "orientation", 1) or 1)
+    out = []
+    for i, n in enumerate(numbers):
+        a = tiling.faces[n].axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        out.append(np.cross(jac[i, :, :, b], jac[i, :, :, c]) * orient)
+    return out
+
+
 def _split_normals(tiling, fmap, step, k=7):
     """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
     mv, fx = set(step.moving), set(step.fixed)
-    s = (np.arange(k) + 0.5) / k
-    out = []
-    for f in tiling.faces:
+    numbers, signs = [], []
+    for n, f in enumerate(tiling.faces):
         lo, up = tuple(f.lower), tuple(f.upper)
-        if not ((lo in mv and up in fx) or (up in mv and lo in fx)):
-            continue
-        box = tiling.cells[lo].box
-        a = f.axis
-        b, c = (a + 1) % 3, (a + 2) % 3
-        uvw = np.zeros((k * k, 3))
-        uvw[:, a] = box[1, a]
-        uvw[:, b] = box[0, b] + np.repeat(s, k) * (box[1, b] - box[0, b])
-        uvw[:, c] = box[0, c] + np.tile(s, k) * (box[1, c] - box[0, c])
-        _, jac = fmap.evaluate_with_jacobian(uvw)
-        n = np.cross(jac[:, :, b], jac[:, :, c]) * float(getattr(fmap, "orientation", 1) or 1)
-        out.append(n * (1.0 if up in mv else -1.0))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        if (lo in mv and up in fx) or (up in mv and lo in fx):
+            numbers.append(n)
+            signs.append(1.0 if up in mv else -1.0)
+    grids = _face_normal_grids(tiling, fmap, numbers, k)
+    return np.concatenate([g * sg for g, sg in zip(grids, signs, strict=True)]) if grids else np.zeros((0, 3))
 
 
 def split_directions(tiling, fmap, plan):
@@ -326,7 +485,7 @@ def split_directions(tiling, fmap, plan):
     out = []
     for step in plan.steps:
         ns = _split_normals(tiling, fmap, step)
-        d = ns.sum(axis=0)
+        d = ns.sum(axis=0) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
         size = float(np.linalg.norm(d))
         if size < 1e-12:
             out.append((np.zeros(3), -1.0))

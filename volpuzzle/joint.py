@@ -318,11 +318,30 @@ _CAND = np.array([(sb, sc) for sb in _S for sc in _S])
 
 
 @dataclass(frozen=True, eq=False)
+class _FaceShape:
+    """A face's sample points (k of them), whichever way its pin points: fractions and parameters in both cells
+    {cell side -1 lower, +1 upper: (k, 3)}, mm points x (k, 3), the face normal nrm (k, 3) (+axis), unit in-face
+    tangents of each cell {side: (k, 3, 3)} (row x: along axis x), line lengths {side: (k, 3)}, mm offsets (k, 12, 3)
+    from x to a ring round it as wide as the largest pin, usable (k,) where the face is not collapsed, and dF/duvw
+    {side: (k, 3, 3)}."""
+
+    n: int
+    face: object
+    fr: dict
+    uvw: dict
+    x: np.ndarray
+    nrm: np.ndarray
+    tangents: dict
+    lens: dict
+    ring: np.ndarray
+    usable: np.ndarray
+    jac: dict
+
+
+@dataclass(frozen=True, eq=False)
 class _FaceData:
-    """A face's sample points (k of them): fractions and parameters in both cells (k, 3), mm points x (k, 3), the
-    face normal nrm (k, 3) (+axis), the pin direction d (k, 3), cos (k,) between them, unit in-face tangents of each
-    cell {cell side: (k, 3, 3)} (row x: along axis x), line lengths {side: (k, 3)}, the face's bulge sag (k,) in mm
-    over a disc of the largest pin and usable (k,) where the face is not collapsed."""
+    """A face's sample points with its pin's direction: the _FaceShape fields, the pin direction d (k, 3), cos (k,)
+    between it and the normal, and the face's bulge sag (k,) in mm along d over a disc of the largest pin."""
 
     n: int
     face: object
@@ -339,9 +358,9 @@ class _FaceData:
     jac: dict
 
 
-def _face_data(tiling, fmap, cell_lengths, faces_dirs, reach_max):
-    """_FaceData per face; faces_dirs {face number: unit mm direction lower -> upper} fixes the pin direction (a
-    split's), else the pin stands normal to the face at each point."""
+def _face_shapes(tiling, fmap, cell_lengths, reach_max):
+    """_FaceShape per face of the tiling, in tiling.faces order: the evaluations of F that placement needs, made
+    once, so that many pin directions can be tried on them (_directed)."""
     out = []
     orientation = int(getattr(fmap, "orientation", 1) or 1)
     k = len(_CAND)
@@ -387,19 +406,26 @@ def _face_data(tiling, fmap, cell_lengths, faces_dirs, reach_max):
     xr = fmap.evaluate(np.concatenate(rings)).reshape(len(per), k, 12, 3)
     for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
         nrm, usable = nrms[n]
-        given = faces_dirs.get(n)
-        d = nrm.copy() if given is None else np.repeat(np.asarray(given, float)[None], k, axis=0)
-        cos = np.clip(np.einsum("ki,ki->k", d, nrm), -1.0, 1.0)
         tangents = {}
         for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
             t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
             tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
         lens = {side: np.stack([_len_at(cell_lengths, idx, ax, frs) for ax in range(3)], axis=1)
                 for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
-        sag = np.max(np.abs(np.einsum("kri,ki->kr", xr[n] - x[n][:, None, :], d)), axis=1)
-        out.append(_FaceData(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, d, cos, tangents, lens,
-                             sag, usable & (cos > 1e-6), {-1: jac[n], +1: jac_up[n]}))
+        out.append(_FaceShape(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, tangents, lens,
+                              xr[n] - x[n][:, None, :], usable, {-1: jac[n], +1: jac_up[n]}))
     return out
+
+
+def _directed(shape, direction=None):
+    """The _FaceData of a face whose pins point along the unit mm direction (3,) from its lower cell to its upper
+    one (None: normal to the face at each point)."""
+    k = len(shape.x)
+    d = shape.nrm.copy() if direction is None else np.repeat(np.asarray(direction, float)[None], k, axis=0)
+    cos = np.clip(np.einsum("ki,ki->k", d, shape.nrm), -1.0, 1.0)
+    sag = np.max(np.abs(np.einsum("kri,ki->kr", shape.ring, d)), axis=1)
+    return _FaceData(shape.n, shape.face, shape.fr, shape.uvw, shape.x, shape.nrm, d, cos, shape.tangents, shape.lens,
+                     sag, shape.usable & (cos > 1e-6), shape.jac)
 
 
 def _base(fd, s):
@@ -544,6 +570,47 @@ def _split_dirs(tiling, fmap, plan):
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class _Setup:
+    """What placing joints on a tiling starts from: the asked sizes, the smallest a pin may shrink to, the sizes
+    tried largest first, and the faces' shapes (tiling.faces order)."""
+
+    sizes: _Sizes
+    r_min: float
+    l_min: float
+    steps: tuple
+    shapes: list
+    space: str
+
+    def holds(self, n, direction):
+        """Whether face number n holds the smallest pin (alone) pointing along the unit mm direction (3,) from its
+        lower cell to its upper one: what an assembly plan asks of a split's direction."""
+        return bool(_fits(_directed(self.shapes[n], direction), self.steps[-1]).any())
+
+
+def _setup(tiling, fmap, joint_spec):
+    """The _Setup of place_joints for a spec.JointSpec whose style is not none. Raises SpecError for sizes that are
+    not positive."""
+    cell_lengths = _measure(tiling, fmap)
+    r_given, l_given = joint_spec.radius, joint_spec.length
+    r_def, l_def = default_sizes(tiling, fmap, cell_lengths)
+    sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
+                   float(joint_spec.clearance), float(joint_spec.axial_clearance), joint_spec.style, joint_spec.shape)
+    r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
+    problems = []
+    for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
+                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
+                        ("min_radius", r_min, 0.0), ("min_length", l_min, 0.0)):
+        if not np.isfinite(v) or v <= low:
+            problems.append(f"joints.{key}: must be {'positive' if low == 0 else 'zero or more'} (got {v:g})")
+    if problems:
+        raise SpecError(problems)
+    # never shrink below what was asked, when that is smaller than the minimum
+    r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
+    return _Setup(sizes, r_min, l_min, tuple(_size_steps(sizes, r_min, l_min)),
+                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space)
+
+
 def place_joints(tiling, fmap, joint_spec=None, plan=None):
     """A joint on every shared face with room for one -> Layout (joints, one contact record per face).
 
@@ -557,27 +624,14 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
     if style == "none" or not tiling.faces:
         return Layout((), tuple(_contact(f, False, None, "joints.style is none" if style == "none" else None)
                                 for f in tiling.faces))
-    space = joint_spec.space
-    cell_lengths = _measure(tiling, fmap)
-    r_given, l_given = joint_spec.radius, joint_spec.length
-    r_def, l_def = default_sizes(tiling, fmap, cell_lengths)
-    sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
-                   float(joint_spec.clearance), float(joint_spec.axial_clearance), style, joint_spec.shape)
-    r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
-    problems = []
-    for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
-                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
-                        ("min_radius", r_min, 0.0), ("min_length", l_min, 0.0)):
-        if not np.isfinite(v) or v <= low:
-            problems.append(f"joints.{key}: must be {'positive' if low == 0 else 'zero or more'} (got {v:g})")
-    if problems:
-        raise SpecError(problems)
-    # never shrink below what was asked, when that is smaller than the minimum
-    r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
+    return _place(tiling, fmap, _setup(tiling, fmap, joint_spec), plan)
 
+
+def _place(tiling, fmap, setup, plan):
+    """place_joints on a _Setup."""
+    sizes, r_min, l_min, steps, space = setup.sizes, setup.r_min, setup.l_min, list(setup.steps), setup.space
     dirs = _split_dirs(tiling, fmap, plan) if plan is not None else {}
-    data = _face_data(tiling, fmap, cell_lengths, dirs, sizes.reach)
-    steps = _size_steps(sizes, r_min, l_min)
+    data = [_directed(shape, dirs.get(shape.n)) for shape in setup.shapes]
     first = {n for n, _ in plan.faces_with_joints} if plan is not None else set()
     smallest = steps[-1]
     alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
@@ -934,12 +988,15 @@ def place_planned_joints(tiling, fmap, joint_spec):
     With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is planned
     first (blocks that slide apart) and every pin of a split points along its sliding direction.
     """
-    plan = None
-    if joint_spec.style != "none" and tiling.faces:
+    if joint_spec.style == "none" or not tiling.faces:
+        layout, plan = place_joints(tiling, fmap, joint_spec), None
+    else:
         from .assembly import plan_assembly
 
-        plan = plan_assembly(tiling, fmap)
-    layout = place_joints(tiling, fmap, joint_spec, plan)
+        # the plan is searched for splits whose sliding directions its faces can hold pins along
+        setup = _setup(tiling, fmap, joint_spec)
+        plan = plan_assembly(tiling, fmap, holds=setup.holds)
+        layout = _place(tiling, fmap, setup, plan)
     if plan is not None:
         from .assembly import with_joints
 
