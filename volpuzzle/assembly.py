@@ -233,9 +233,14 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
 
     cells = sorted(tiling.cells)
     search = None
-    if holds is not None and fmap is not None and len(cells) <= SEARCH_CELLS:
-        search = _PlanSearch(tiling, fmap, holds, longest)
     split(cells, frozenset())
+    if holds is not None and fmap is not None and len(cells) <= SEARCH_CELLS:
+        # the plain plan stands where each of its splits' faces holds a pin along it; else the search replaces it
+        search = _PlanSearch(tiling, fmap, holds, longest)
+        if any(search.lost(s.moving, s.fixed, turn=False)[0] for s in steps if not s.ring_cut):
+            jointed.clear()
+            steps.clear()
+            split(cells, frozenset())
     order = []
     # placement order: the fixed block first, then the moving one, recursively
     tree = {frozenset(s.moving) | frozenset(s.fixed): s for s in steps}
@@ -276,12 +281,13 @@ class _PlanSearch:
         boxes = int(np.prod([n * (n + 1) // 2 for n in counts]))
         self.every_plane = boxes * sum(n - 1 for n in counts) <= SEARCH_SPLITS
 
-    def lost(self, moving, fixed):
+    def lost(self, moving, fixed, turn=True):
         """(faces across the split that cannot hold a pin along its sliding direction, that direction (3,) from fixed
         to moving or None). The direction is the mean normal of the split's surface; where that loses a face of a
         split of at most TURN_FACES faces, the directions within MAX_TURN_DEG of it that keep every normal of the
-        surface ahead (the block still leaves without touching) are tried, and the one holding the most wins."""
-        key = (frozenset(moving), frozenset(fixed))
+        surface ahead (the block still leaves without touching) are tried, and the one holding the most wins (turn
+        False: the mean normal only)."""
+        key = (frozenset(moving), frozenset(fixed), turn)
         if key in self._lost:
             return self._lost[key]
         mv, fx = set(moving), set(fixed)
@@ -300,18 +306,23 @@ class _PlanSearch:
             return self._lost[key]
         d = total / size
 
-        def lost_along(e):
-            return sum(not self.holds(n, sign * e) for n, sign in across)
-
-        out = (lost_along(d), d)
-        if out[0] and len(across) <= TURN_FACES:
+        held = [self.holds(n, sign * d) for n, sign in across]
+        out = (held.count(False), d)
+        if out[0] and turn and len(across) <= TURN_FACES:
             unit = np.concatenate(normals)
             unit = unit / np.maximum(np.linalg.norm(unit, axis=1), 1e-300)[:, None]
             faces = [m.sum(axis=0) / max(float(np.linalg.norm(m.sum(axis=0))), 1e-300) for m in normals]
+            # the faces the mean normal loses are tried first: a direction holding none of them cannot do better
+            order = sorted(range(len(across)), key=lambda i: held[i])
             for e in sorted(list(_cap(d, MAX_TURN_DEG)) + faces, key=lambda e: -float(e @ d)):
                 if float((unit @ e).min()) <= 0.0 or float(e @ d) < np.cos(np.radians(MAX_TURN_DEG)) - 1e-9:
                     continue
-                got = lost_along(e)
+                got = 0
+                for i in order:  # stops as soon as it cannot beat the best so far
+                    n, sign = across[i]
+                    got += not self.holds(n, sign * e)
+                    if got >= out[0]:
+                        break
                 if got < out[0]:
                     out = (got, e)
                     if got == 0:

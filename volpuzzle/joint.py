@@ -51,6 +51,8 @@ MIN_RADIUS = JointSpec.min_radius  # mm: the smallest pin a pin shrinks to (2 mm
 MIN_LENGTH = JointSpec.min_length  # mm: the shortest pin that still holds its piece
 DEFAULT_MAX_RADIUS = 2.5  # mm: a derived radius stops growing here; larger pins only when asked
 MAX_TILT_DEG = 30.0  # the most a straight pin may lean against its face (see the module docstring)
+SIDE_WALL = 0.5  # the share of a wall kept, measured on the real side faces (see _Sides)
+_COS_TILT = float(np.cos(np.radians(MAX_TILT_DEG)))
 ALLOW = JOINT_ALLOW  # what joints.allow may accept: pieces without a joint, pieces that cannot come out
 
 
@@ -466,7 +468,7 @@ def _fits(fd, s, lean=True, limit=True):
             ok &= fr[:, x] * lens[:, x] >= foot + np.maximum(-shift, 0.0) - 1e-9
         ok &= lens[:, a] >= depth * cos + rho * sin + s.wall - 1e-9
     if lean and limit:
-        ok &= fd.cos >= np.cos(np.radians(MAX_TILT_DEG)) - 1e-12
+        ok &= fd.cos >= _COS_TILT - 1e-12
     return ok
 
 
@@ -570,6 +572,73 @@ def _split_dirs(tiling, fmap, plan):
     return out
 
 
+class _Sides:
+    """The real side faces of the cells, sampled in mm, to measure a placed joint against: _fits judges a point by the
+    lengths of the cell's parameter lines, as if F ran at an even speed along them and the cell were straight; near a
+    pole, where a cell narrows to a wedge, a leaning pin then broke 3.6 mm^3 into the piece beside its hole."""
+
+    def __init__(self, tiling, fmap, count=24):
+        self.tiling, self.fmap, self.count = tiling, fmap, count
+        self._faces = {}
+
+    def _face(self, idx, axis, end):
+        """Points (m, 3), unit normals (m, 3) (zero where collapsed), interior (m,) and box (2, 3) of a cell's face."""
+        key = (tuple(idx), axis, end)
+        if key not in self._faces:
+            lo, hi = self.tiling.cells[tuple(idx)].box
+            b, c = _cyclic(axis)
+            g = np.linspace(0.0, 1.0, self.count)
+            uvw = np.empty((self.count * self.count, 3))
+            uvw[:, axis] = hi[axis] if end else lo[axis]
+            uvw[:, b] = lo[b] + np.repeat(g, self.count) * (hi[b] - lo[b])
+            uvw[:, c] = lo[c] + np.tile(g, self.count) * (hi[c] - lo[c])
+            x, jac = self.fmap.evaluate_with_jacobian(uvw)
+            nrm = np.cross(jac[:, :, b], jac[:, :, c])
+            size = np.linalg.norm(nrm, axis=1)
+            real = size > 1e-9 * max(float(size.max()), 1e-300)
+            nrm = np.where(real[:, None], nrm / np.maximum(size, 1e-300)[:, None], 0.0)
+            edge = np.zeros((self.count, self.count), bool)
+            edge[[0, -1], :] = edge[:, [0, -1]] = True
+            self._faces[key] = (x, nrm, ~edge.ravel(), np.array([x.min(axis=0), x.max(axis=0)]))
+        return self._faces[key]
+
+    def distance(self, idx, keep_out, p, beyond=np.inf):
+        """mm (n,) from points p (n, 3) to the nearest of the cell's faces other than keep_out (axis, end): across the
+        tangent plane of the nearest sample inside a face, straight to a sample on its rim. Faces whose box lies
+        `beyond` mm or more from the points' box are skipped (their distance counts as inf)."""
+        out = np.full(len(p), np.inf)
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        for axis in range(3):
+            for end in (0, 1):
+                if (axis, end) == keep_out:
+                    continue
+                x, nrm, inner, box = self._face(idx, axis, end)
+                gap = np.maximum(np.maximum(box[0] - hi, lo - box[1]), 0.0)
+                if float(np.linalg.norm(gap)) >= beyond:
+                    continue
+                diff = p[:, None, :] - x[None, :, :]
+                dist = np.einsum("nmi,nmi->nm", diff, diff)
+                near = np.argmin(dist, axis=1)
+                rows = np.arange(len(p))
+                plane = np.abs(np.einsum("ni,ni->n", diff[rows, near], nrm[near]))
+                d = np.where(inner[near] & np.any(nrm[near] != 0.0, axis=1), plane, np.sqrt(dist[rows, near]))
+                out = np.minimum(out, d)
+        return out
+
+    def clear(self, fd, k, s):
+        """Whether the joint at point k of face fd at size s keeps its radius and SIDE_WALL of a wall to every other
+        face of both its cells along its whole length (the hole in the upper cell, the pin's base in the lower)."""
+        a = fd.face.axis
+        for side, idx, keep_out in ((-1, fd.face.lower, (a, 1)), (+1, fd.face.upper, (a, 0))):
+            depth, way, rho = _intrusion(fd, s, side)
+            need = rho + SIDE_WALL * s.wall - 1e-9
+            t = np.linspace(0.0, float(depth[k]), 7)
+            p = fd.x[k][None, :] + (way * t)[:, None] * fd.d[k][None, :]
+            if float(self.distance(idx, keep_out, p, beyond=need).min()) < need:
+                return False
+        return True
+
+
 @dataclass(frozen=True, eq=False)
 class _Setup:
     """What placing joints on a tiling starts from: the asked sizes, the smallest a pin may shrink to, the sizes
@@ -581,11 +650,21 @@ class _Setup:
     steps: tuple
     shapes: list
     space: str
+    sides: _Sides
 
     def holds(self, n, direction):
         """Whether face number n holds the smallest pin (alone) pointing along the unit mm direction (3,) from its
         lower cell to its upper one: what an assembly plan asks of a split's direction."""
-        return bool(_fits(_directed(self.shapes[n], direction), self.steps[-1]).any())
+        shape = self.shapes[n]
+        if not np.any(shape.nrm[shape.usable] @ np.asarray(direction, float) >= _COS_TILT - 1e-12):
+            return False  # leaning too far everywhere: what _fits finds last, at a fraction of its cost
+        fd = _directed(shape, direction)
+        ok = _fits(fd, self.steps[-1])
+        # the roomiest few points that fit are measured against the real side faces, as placement will
+        for k in np.argsort(-np.where(ok, _room_score(fd), -np.inf))[:min(int(ok.sum()), 4)]:
+            if self.sides.clear(fd, int(k), self.steps[-1]):
+                return True
+        return False
 
 
 def _setup(tiling, fmap, joint_spec):
@@ -608,7 +687,7 @@ def _setup(tiling, fmap, joint_spec):
     # never shrink below what was asked, when that is smaller than the minimum
     r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
     return _Setup(sizes, r_min, l_min, tuple(_size_steps(sizes, r_min, l_min)),
-                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space)
+                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space, _Sides(tiling, fmap))
 
 
 def place_joints(tiling, fmap, joint_spec=None, plan=None):
@@ -637,14 +716,14 @@ def _place(tiling, fmap, setup, plan):
     alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
     order = sorted(range(len(data)), key=lambda n: (n not in first, alone[n], n))
     cells = list(tiling.cells)
-    chosen = _greedy(data, steps, order, cells)
+    chosen = _greedy(data, steps, order, cells, setup.sides)
     for _ in range(4):
         # a face that shrank or got nothing goes first next time, kept if the puzzle is better for it
         late = [n for n in order if n not in chosen or chosen[n][1] is not sizes]
         if not late:
             break
         order = sorted(order, key=lambda n: n not in late)
-        again = _greedy(data, steps, order, cells)
+        again = _greedy(data, steps, order, cells, setup.sides)
         if _cost(again, sizes, data, cells) >= _cost(chosen, sizes, data, cells):
             break
         chosen = again
@@ -674,9 +753,10 @@ def _place(tiling, fmap, setup, plan):
                    "min_length_mm": l_min})
 
 
-def _greedy(data, steps, order, cells):
+def _greedy(data, steps, order, cells, sides=None):
     """Faces in `order`, each at its roomiest point that fits and keeps a wall to the joints already placed in its two
-    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}."""
+    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}. sides
+    (_Sides): the point is also measured against the cells' real side faces."""
     inside = {idx: [] for idx in cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
     chosen = {}
     for n in order:
@@ -693,8 +773,12 @@ def _greedy(data, steps, order, cells):
                     ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
                     if not ok.any():
                         break
-            if ok.any():
+            while ok.any():
                 k = int(np.argmax(np.where(ok, score, -np.inf)))
+                if sides is None or sides.clear(fd, k, s):
+                    break
+                ok[k] = False
+            if ok.any():
                 chosen[n] = (k, s)
                 for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
                     p0, p1, rp = segs[side]
