@@ -123,7 +123,7 @@ def _face_normals(tiling, fmap, numbers):
 SEARCH_CELLS = 64  # tilings up to this many cells get the plan search (holds)
 TURN_FACES = 4  # a split of at most this many faces may turn its pins off its mean normal to hold more of them
 MAX_TURN_DEG = 20.0  # how far: within the 30 deg a pin may lean, so that the mean normal's own faces still can
-SEARCH_SPLITS = 4000  # the search tries every plane when blocks x planes are at most this many, else middle cuts
+SEARCH_SPLITS = 400  # the search tries every plane when blocks x planes are at most this many, else middle cuts
 
 
 def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=None):

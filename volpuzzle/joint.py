@@ -577,30 +577,38 @@ class _Sides:
     lengths of the cell's parameter lines, as if F ran at an even speed along them and the cell were straight; near a
     pole, where a cell narrows to a wedge, a leaning pin then broke 3.6 mm^3 into the piece beside its hole."""
 
-    def __init__(self, tiling, fmap, count=24):
+    def __init__(self, tiling, fmap, count=16):
         self.tiling, self.fmap, self.count = tiling, fmap, count
-        self._faces = {}
+        self._faces, self._clear = {}, {}
 
     def _face(self, idx, axis, end):
-        """Points (m, 3), unit normals (m, 3) (zero where collapsed), interior (m,) and box (2, 3) of a cell's face."""
-        key = (tuple(idx), axis, end)
-        if key not in self._faces:
-            lo, hi = self.tiling.cells[tuple(idx)].box
-            b, c = _cyclic(axis)
+        """Points (m, 3), unit normals (m, 3) (zero where collapsed), interior (m,) and box (2, 3) of a cell's face
+        (all six of a cell evaluated at once, on first use)."""
+        idx = tuple(idx)
+        if idx not in self._faces:
+            lo, hi = self.tiling.cells[idx].box
             g = np.linspace(0.0, 1.0, self.count)
-            uvw = np.empty((self.count * self.count, 3))
-            uvw[:, axis] = hi[axis] if end else lo[axis]
-            uvw[:, b] = lo[b] + np.repeat(g, self.count) * (hi[b] - lo[b])
-            uvw[:, c] = lo[c] + np.tile(g, self.count) * (hi[c] - lo[c])
-            x, jac = self.fmap.evaluate_with_jacobian(uvw)
-            nrm = np.cross(jac[:, :, b], jac[:, :, c])
-            size = np.linalg.norm(nrm, axis=1)
-            real = size > 1e-9 * max(float(size.max()), 1e-300)
-            nrm = np.where(real[:, None], nrm / np.maximum(size, 1e-300)[:, None], 0.0)
+            m = self.count * self.count
+            uvw = np.empty((6, m, 3))
+            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
+                b, c = _cyclic(ax)
+                uvw[f, :, ax] = hi[ax] if e else lo[ax]
+                uvw[f, :, b] = lo[b] + np.repeat(g, self.count) * (hi[b] - lo[b])
+                uvw[f, :, c] = lo[c] + np.tile(g, self.count) * (hi[c] - lo[c])
+            x, jac = self.fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+            x, jac = x.reshape(6, m, 3), jac.reshape(6, m, 3, 3)
             edge = np.zeros((self.count, self.count), bool)
             edge[[0, -1], :] = edge[:, [0, -1]] = True
-            self._faces[key] = (x, nrm, ~edge.ravel(), np.array([x.min(axis=0), x.max(axis=0)]))
-        return self._faces[key]
+            faces = {}
+            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
+                b, c = _cyclic(ax)
+                nrm = np.cross(jac[f, :, :, b], jac[f, :, :, c])
+                size = np.linalg.norm(nrm, axis=1)
+                real = size > 1e-9 * max(float(size.max()), 1e-300)
+                nrm = np.where(real[:, None], nrm / np.maximum(size, 1e-300)[:, None], 0.0)
+                faces[(ax, e)] = (x[f], nrm, ~edge.ravel(), np.array([x[f].min(axis=0), x[f].max(axis=0)]))
+            self._faces[idx] = faces
+        return self._faces[idx][(axis, end)]
 
     def distance(self, idx, keep_out, p, beyond=np.inf):
         """mm (n,) from points p (n, 3) to the nearest of the cell's faces other than keep_out (axis, end): across the
@@ -628,15 +636,21 @@ class _Sides:
     def clear(self, fd, k, s):
         """Whether the joint at point k of face fd at size s keeps its radius and SIDE_WALL of a wall to every other
         face of both its cells along its whole length (the hole in the upper cell, the pin's base in the lower)."""
+        key = (fd.n, k, s, tuple(np.round(fd.d[k], 9)))  # placement tries again what the plan already asked
+        if key in self._clear:
+            return self._clear[key]
         a = fd.face.axis
+        out = True
         for side, idx, keep_out in ((-1, fd.face.lower, (a, 1)), (+1, fd.face.upper, (a, 0))):
             depth, way, rho = _intrusion(fd, s, side)
             need = rho + SIDE_WALL * s.wall - 1e-9
             t = np.linspace(0.0, float(depth[k]), 7)
             p = fd.x[k][None, :] + (way * t)[:, None] * fd.d[k][None, :]
             if float(self.distance(idx, keep_out, p, beyond=need).min()) < need:
-                return False
-        return True
+                out = False
+                break
+        self._clear[key] = out
+        return out
 
 
 @dataclass(frozen=True, eq=False)
