@@ -10,8 +10,10 @@ pin with its clearance and wall gets one; a face without one is reported with th
 
 Which way it points. With an assembly plan (volpuzzle.assembly) every face belongs to the one split of the plan that
 parts its two cells, and all pins of a split are parallel to that split's sliding direction (the mean normal of its
-whole cut surface), so a block slides off all its pins at once. A pin therefore leans against its own face by up to
-MAX_TILT_DEG; without a plan it stands normal to its face.
+whole cut surface, or a direction within assembly.MAX_TURN_DEG of it that the plan found to hold more of its faces), so
+a block slides off all its pins at once. A pin therefore leans against its own face by up to MAX_TILT_DEG; without a
+plan it stands normal to its face. place_planned_joints hands the plan search _Setup.holds, so that the plan's cuts
+are the ones whose faces can hold pins along their splits.
 
 Why 30 degrees. A straight pin leaning by t meets its face in an ellipse 1/cos t longer than the pin is wide (1.15 at
 30 deg), and the lip of its hole is a wedge of 90 - t degrees of material; at 30 deg that wedge is 60 deg, which a
@@ -21,8 +23,10 @@ thinner than two extrusion lines on a 1 mm pin.
 
 Where on the face. Each face is sampled on a 13 x 13 grid of points; a point is usable at a size when the pin's
 footprint (widened by its lean) keeps a wall to every edge of the face in both pieces, also at the bottom of its hole,
-and both pieces are deep enough for their part of the joint and a wall. Inside a piece every joint is a cylinder (a
-pin's base, reaching back behind the face; a hole, reaching in) and two of them must keep a wall between them. Faces
+and both pieces are deep enough for their part of the joint and a wall; a point chosen is then measured against the
+cells' real side faces too (_Sides), which a curved or narrowing cell brings closer than its line lengths say. Inside a
+piece every joint is a cylinder (a pin's base, reaching back behind the face; a hole, reaching in) and two of them must
+keep a wall between them. Faces
 are placed one at a time, the plan's own faces first (they hold the puzzle together), each at its roomiest usable
 point that keeps apart from the joints already placed in its two pieces; where none is left at the asked size the pin
 shrinks, down to min_radius and min_length (default MIN_RADIUS, MIN_LENGTH: still printable).
@@ -747,7 +751,7 @@ def _place(tiling, fmap, setup, plan):
         f = fd.face
         room = bool(_fits(fd, smallest, lean=False).any())
         if n not in chosen:
-            contacts.append(_contact(f, room, None, _why_not(fd, smallest, room, r_min, l_min)))
+            contacts.append(_contact(f, room, None, _why_not(fd, smallest, room, r_min, l_min, setup.sides)))
             continue
         k, s = chosen[n]
         base = float(_base(fd, s)[k])
@@ -810,7 +814,7 @@ def _cost(chosen, sizes, data, cells):
             round(sum(sizes.radius - s.radius for s in small), 6))
 
 
-def _why_not(fd, smallest, room, r_min, l_min):
+def _why_not(fd, smallest, room, r_min, l_min, sides=None):
     """One sentence: why face fd carries no joint."""
     if not fd.usable.any():
         return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
@@ -827,6 +831,11 @@ def _why_not(fd, smallest, room, r_min, l_min):
         lean = float(np.degrees(np.arccos(np.clip(fd.cos[leaning].max(), -1.0, 1.0))))
         return (f"tilt: its split slides at least {np.floor(lean * 10) / 10:g} deg off the face's normal where a pin "
                 f"fits, more than the {MAX_TILT_DEG:g} deg a straight pin may lean")
+    ok = _fits(fd, smallest)
+    if sides is not None and not any(sides.clear(fd, int(k), smallest) for k in np.flatnonzero(ok)):
+        return (f"no room: where a pin of {smallest.radius:g} mm fits the face, it or its hole would come within "
+                f"{SIDE_WALL * smallest.wall:g} mm of another face of {piece_id(fd.face.lower)} or "
+                f"{piece_id(fd.face.upper)} (the pieces bend or narrow there)")
     return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "
             f"{piece_id(fd.face.upper)}")
 
