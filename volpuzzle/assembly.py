@@ -57,7 +57,8 @@ class Step:
     moving and fixed together are the block present at that moment (other blocks were taken apart separately);
     joints: face numbers (into tiling.faces) crossing the split that carry a joint; ring_cut: the split also cuts a
     periodic seam, so the two halves part across two faces at once; slide: the mm direction (3,) in which moving
-    leaves when the plan knows it (mesh mode), the way the replay takes a split that no joint crosses.
+    leaves when the plan chose it (mesh mode, and the volume plan search: the pins point along it), the way the
+    replay takes a split that no joint crosses.
     """
 
     moving: tuple
@@ -138,9 +139,10 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
     fmap (optional, volpuzzle.mapping.Map or anything with evaluate_with_jacobian): used to pick the widest crossing
     face for a split's joint and to add joints on crossing faces whose normals are within max_angle_deg of it.
     holds (optional, with fmap): holds(face number, unit mm direction (3,) from its lower cell to its upper one) ->
-    whether that face holds a pin along it (volpuzzle.joint). Each block is then cut along the axis whose tree of
-    splits leaves the fewest faces that cannot hold a pin along their split's sliding direction (_PlanSearch), the
-    longest axis among equals; without it, along the longest axis.
+    whether that face holds a pin along it (volpuzzle.joint). Where the plain plan (each block cut at the middle of
+    its longest axis) leaves a face that cannot hold a pin along its split's sliding direction, and the tiling has at
+    most SEARCH_CELLS cells, each block is cut where its whole tree of splits leaves the fewest such faces instead
+    (_PlanSearch), and each step records its direction as slide.
     """
     grid = tiling.grid
     faces = list(tiling.faces)
