@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from shapes import ring
+from shapes import half_cone, ring
 
 from volpuzzle import joint as J
 from volpuzzle.errors import GeometryError, SpecError
@@ -376,3 +376,31 @@ def test_a_piece_with_no_room_names_itself_and_what_would_fit():
     J.require_joined(t, J.place_joints(t, _map(vol), again), again)
     # the user may allow loose pieces
     J.require_joined(t, layout, _spec(radius=3.0, length=4.0, min_radius=3.0, allow=("loose",)))
+
+
+def test_the_plan_cuts_a_curved_wall_so_that_every_face_holds_a_pin_along_its_split():
+    # Cut across u first (its longest axis), the half cone's u faces all slide along their mean normal, 41 deg off the
+    # two end faces: those lost their pins. The plan search cuts round v first, so every u face is parted alone.
+    from volpuzzle import assembly as A
+
+    vol = half_cone()
+    fmap, t = _map(vol), _tiling(vol, (4, 4, 1))
+    plain = J.place_joints(t, fmap, _spec(), A.plan_assembly(t, fmap))
+    lost = [c for c in plain.contacts if c["room"] and not c["pinned"]]
+    assert lost and all(c["reason"].startswith("tilt") for c in lost)
+    layout, plan = J.place_planned_joints(t, fmap, _spec())
+    assert all(c["pinned"] for c in layout.contacts if c["room"]) and sum(c["room"] for c in layout.contacts) == 24
+    assert A.step_problems(t, plan) == []
+    # every pin of a split points along that split's sliding direction, leaning at most MAX_TILT_DEG
+    for (d, _), step in zip(A.split_directions(t, fmap, plan), plan.steps, strict=True):
+        for j in A._across(layout.joints, step.moving, step.fixed):
+            assert abs(float(np.dot(j.direction, d))) > 0.999999 and j.tilt_deg <= J.MAX_TILT_DEG
+    # and the holes keep inside their pieces, measured on the real geometry (of the end columns, whose faces bend most)
+    for idx, cell in t.cells.items():
+        if idx[1] not in (0, 3):
+            continue
+        body = _body(fmap, cell)
+        for j, role, s in _cell_solids(layout.joints, idx):
+            if role == "hole":
+                deep = s.trim_by_plane(j.direction, float(np.dot(j.direction, j.center)) + j.base_depth)
+                assert _vol(deep - body) < 1e-4 * _vol(deep), (idx, j.axis)

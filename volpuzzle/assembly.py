@@ -18,6 +18,12 @@ each step joins one finished block onto another: a single piece is a block of on
 Pins always sit on the face's lower cell: pulling the upper block off the lower one pulls the hole off the pin, and
 each cell keeps at most one pin per max face and one hole per min face, three of each at most.
 
+Which plane cuts a block. Without more to go on, the middle of its longest axis. Given what a face can hold (holds,
+from volpuzzle.joint), plan_assembly keeps that plain plan only when every split's faces hold a pin along its
+direction; else _PlanSearch picks, block by block, the cuts whose whole tree of splits leaves the fewest faces without
+one: on a curved shell, cutting round a ring before across it keeps each split's faces within a few degrees of its
+direction (the duck went from 50 to 54 of its 56 contacts pinned).
+
 A periodic axis is a closed ring with no outer side. It is cut first, into two halves at the face opposite the seam:
 the halves part across both cuts at once (a torus halved through its axis: its pins cross the middle face and the
 seam, all parallel). An odd ring count still halves, one half a cell longer. After that the halves are open blocks.
@@ -51,7 +57,8 @@ class Step:
     moving and fixed together are the block present at that moment (other blocks were taken apart separately);
     joints: face numbers (into tiling.faces) crossing the split that carry a joint; ring_cut: the split also cuts a
     periodic seam, so the two halves part across two faces at once; slide: the mm direction (3,) in which moving
-    leaves when the plan knows it (mesh mode), the way the replay takes a split that no joint crosses.
+    leaves when the plan chose it (mesh mode, and the volume plan search: the pins point along it), the way the
+    replay takes a split that no joint crosses.
     """
 
     moving: tuple
@@ -120,11 +127,22 @@ def _face_normals(tiling, fmap, numbers):
     return np.array(out), np.array(area)
 
 
-def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
+SEARCH_CELLS = 64  # tilings up to this many cells get the plan search (holds)
+TURN_FACES = 4  # a split of at most this many faces may turn its pins off its mean normal to hold more of them
+MAX_TURN_DEG = 20.0  # how far: within the 30 deg a pin may lean, so that the mean normal's own faces still can
+SEARCH_SPLITS = 400  # the search tries every plane when blocks x planes are at most this many, else middle cuts
+
+
+def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=None):
     """The tree of splits and the faces that carry joints -> AssemblyPlan.
 
     fmap (optional, volpuzzle.mapping.Map or anything with evaluate_with_jacobian): used to pick the widest crossing
     face for a split's joint and to add joints on crossing faces whose normals are within max_angle_deg of it.
+    holds (optional, with fmap): holds(face number, unit mm direction (3,) from its lower cell to its upper one) ->
+    whether that face holds a pin along it (volpuzzle.joint). Where the plain plan (each block cut at the middle of
+    its longest axis) leaves a face that cannot hold a pin along its split's sliding direction, and the tiling has at
+    most SEARCH_CELLS cells, each block is cut where its whole tree of splits leaves the fewest such faces instead
+    (_PlanSearch), and each step records its direction as slide.
     """
     grid = tiling.grid
     faces = list(tiling.faces)
@@ -170,6 +188,21 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
               if area[k] > 0.25 * area[best] and float(normals[k] @ normals[best]) >= cos_max]
         return sorted(set(ok) | {cands[best]})
 
+    def longest(cells):
+        """The axis a block is cut across without a search: the most cells, then the longest in mm."""
+        idx = np.array(cells)
+        spans = [len(np.unique(idx[:, x])) for x in range(3)]
+        if fmap is not None:
+            # physical length of the block along each axis breaks ties between equal counts
+            c = tiling.cells[tuple(cells[0])].box.mean(axis=0)
+            _, jac = fmap.evaluate_with_jacobian(c[None])
+            lo = np.array([tiling.breaks[x][idx[:, x].min()] for x in range(3)])
+            hi = np.array([tiling.breaks[x][idx[:, x].max() + 1] for x in range(3)])
+            size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
+        else:
+            size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
+        return max(range(3), key=lambda x: (spans[x], size[x]))
+
     def split(cells, open_axes):
         """Assembly steps for the block `cells` (a list of indices); open_axes: periodic axes already cut."""
         if len(cells) == 1:
@@ -190,28 +223,32 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
             split(moving, open_axes | {a})
             steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), True))
             return
-        spans = [len(np.unique(idx[:, x])) for x in range(3)]
-        if fmap is not None:
-            # physical length of the block along each axis breaks ties between equal counts
-            c = tiling.cells[tuple(cells[0])].box.mean(axis=0)
-            _, jac = fmap.evaluate_with_jacobian(c[None])
-            lo = np.array([tiling.breaks[x][idx[:, x].min()] for x in range(3)])
-            hi = np.array([tiling.breaks[x][idx[:, x].max() + 1] for x in range(3)])
-            size = np.linalg.norm(jac[0], axis=0) * (hi - lo)
+        if search is not None:
+            a, p = search.cut(cells)
+            fixed, moving = [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
         else:
-            size = np.array([0.0, 1e-9, 2e-9])  # w, then v, then u
-        a = max(range(3), key=lambda x: (spans[x], size[x]))
-        fixed, moving = _halves(cells, a)
+            a = longest(cells)
+            fixed, moving = _halves(cells, a)
         cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
         chosen = choose(cand, a, mid_lo)
         jointed.extend(chosen)
         split(fixed, open_axes)
         split(moving, open_axes)
-        steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), False))
+        slide = search.slide(moving, fixed) if search is not None else None
+        steps.append(Step(tuple(sorted(moving)), tuple(sorted(fixed)), a, +1, tuple(chosen), False,
+                          None if slide is None else tuple(float(x) for x in slide)))
 
     cells = sorted(tiling.cells)
+    search = None
     split(cells, frozenset())
+    if holds is not None and fmap is not None and len(cells) <= SEARCH_CELLS:
+        # the plain plan stands where each of its splits' faces holds a pin along it; else the search replaces it
+        search = _PlanSearch(tiling, fmap, holds, longest)
+        if any(search.lost(s.moving, s.fixed, turn=False)[0] for s in steps if not s.ring_cut):
+            jointed.clear()
+            steps.clear()
+            split(cells, frozenset())
     order = []
     # placement order: the fixed block first, then the moving one, recursively
     tree = {frozenset(s.moving) | frozenset(s.fixed): s for s in steps}
@@ -227,6 +264,129 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
     walk(cells)
     faces_with_joints = tuple((n, "lower") for n in sorted(set(jointed)))
     return AssemblyPlan(faces_with_joints, tuple(reversed(steps)), tuple(order))
+
+
+class _PlanSearch:
+    """Where each open block of a tiling is cut (an axis and a grid plane across it), so that the whole tree of
+    splits below it leaves the fewest faces unable to hold a pin along their split's sliding direction (the
+    area-weighted mean normal of the split's whole surface, as split_directions gives it); among equals the most
+    even cuts, then the plan without a search (the middle of the longest axis) as often as it can.
+
+    A split's direction suits the faces near its middle; on a curved block, the faces at its ends lean by up to the
+    block's bend (the duck's half ring, cut across u, leaned 24 deg off its end faces). Cutting the other way first
+    leaves smaller blocks, whose splits bend less. Blocks are memoized, each scored once per cut: every plane is
+    tried while the sub-blocks are few (SEARCH_SPLITS), else only the middle one of each axis."""
+
+    def __init__(self, tiling, fmap, holds, longest, k=7):
+        self.tiling, self.holds, self.longest = tiling, holds, longest
+        self.faces = list(tiling.faces)
+        self._normals = _face_normal_grids(tiling, fmap, range(len(self.faces)), k)
+        self._by_cell = {}
+        for n, f in enumerate(self.faces):
+            self._by_cell.setdefault(tuple(f.lower), []).append(n)
+        self._memo, self._lost = {}, {}
+        counts = [int(x) for x in tiling.grid]
+        boxes = int(np.prod([n * (n + 1) // 2 for n in counts]))
+        self.every_plane = boxes * sum(n - 1 for n in counts) <= SEARCH_SPLITS
+
+    def lost(self, moving, fixed, turn=True):
+        """(faces across the split that cannot hold a pin along its sliding direction, that direction (3,) from fixed
+        to moving or None). The direction is the mean normal of the split's surface; where that loses a face of a
+        split of at most TURN_FACES faces, the directions within MAX_TURN_DEG of it that keep every normal of the
+        surface ahead (the block still leaves without touching) are tried, and the one holding the most wins (turn
+        False: the mean normal only)."""
+        key = (frozenset(moving), frozenset(fixed), turn)
+        if key in self._lost:
+            return self._lost[key]
+        mv, fx = set(moving), set(fixed)
+        across, normals = [], []
+        for c in list(mv) + list(fx):
+            for n in self._by_cell.get(c, ()):
+                up = tuple(self.faces[n].upper)
+                if (c in mv and up in fx) or (c in fx and up in mv):
+                    sign = 1.0 if up in mv else -1.0
+                    across.append((n, sign))
+                    normals.append(sign * self._normals[n])
+        total = np.concatenate(normals).sum(axis=0) if normals else np.zeros(3)
+        size = float(np.linalg.norm(total))
+        if size < 1e-12:
+            self._lost[key] = (len(across), None)
+            return self._lost[key]
+        d = total / size
+
+        held = [self.holds(n, sign * d) for n, sign in across]
+        out = (held.count(False), d)
+        if out[0] and turn and len(across) <= TURN_FACES:
+            unit = np.concatenate(normals)
+            unit = unit / np.maximum(np.linalg.norm(unit, axis=1), 1e-300)[:, None]
+            faces = [m.sum(axis=0) / max(float(np.linalg.norm(m.sum(axis=0))), 1e-300) for m in normals]
+            # the faces the mean normal loses are tried first: a direction holding none of them cannot do better
+            order = sorted(range(len(across)), key=lambda i: held[i])
+            for e in sorted(list(_cap(d, MAX_TURN_DEG)) + faces, key=lambda e: -float(e @ d)):
+                if float((unit @ e).min()) <= 0.0 or float(e @ d) < np.cos(np.radians(MAX_TURN_DEG)) - 1e-9:
+                    continue
+                got = 0
+                for i in order:  # stops as soon as it cannot beat the best so far
+                    n, sign = across[i]
+                    got += not self.holds(n, sign * e)
+                    if got >= out[0]:
+                        break
+                if got < out[0]:
+                    out = (got, e)
+                    if got == 0:
+                        break
+        self._lost[key] = out
+        return out
+
+    def best(self, cells):
+        """((faces lost, uneven cells, cuts off the plain plan) of the block's best tree, (axis, plane)), the plane
+        being the least index of the moving part along axis; axis -1 for a single cell."""
+        key = frozenset(cells)
+        if key in self._memo:
+            return self._memo[key]
+        idx = np.array(cells)
+        out = None
+        default = None
+        for a in range(3):
+            vals = np.unique(idx[:, a])
+            if len(vals) < 2:
+                continue
+            if default is None:
+                default = self.longest(cells)
+                plain = np.unique(idx[:, default])
+                plain = (default, int(plain[len(plain) // 2]))
+            for p in (vals[1:] if self.every_plane else [vals[len(vals) // 2]]):
+                fixed = [c for c in cells if c[a] < p]
+                moving = [c for c in cells if c[a] >= p]
+                lo, hi = self.best(fixed)[0], self.best(moving)[0]
+                cut = (a, int(p))
+                cost = (self.lost(moving, fixed)[0] + lo[0] + hi[0], abs(len(moving) - len(fixed)) + lo[1] + hi[1],
+                        int(cut != plain) + lo[2] + hi[2])
+                if out is None or cost < out[0]:
+                    out = (cost, cut)
+        self._memo[key] = out if out is not None else ((0, 0, 0), (-1, 0))
+        return self._memo[key]
+
+    def cut(self, cells):
+        """(axis, plane) to cut the block across: cells with index >= plane along axis move."""
+        return self.best(sorted(tuple(c) for c in cells))[1]
+
+    def slide(self, moving, fixed):
+        """The direction (3,) from fixed to moving that the split's pins point along, or None."""
+        return self.lost(moving, fixed)[1]
+
+
+def _cap(d, angle_deg, count=48):
+    """count unit vectors (count, 3) spread evenly over the cap of half-angle angle_deg round the unit d."""
+    i = np.arange(count) + 0.5
+    z = 1.0 - (1.0 - np.cos(np.radians(angle_deg))) * i / count
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    return local @ np.array([e1, e2, d])
 
 
 def joint_faces(tiling, plan):
@@ -296,37 +456,56 @@ def _halves(cells, a):
     return [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
 
 
+def _face_normal_grids(tiling, fmap, numbers, k=7):
+    """Per face number, area-weighted mm normals (k * k, 3) on a k x k grid over the face, from its lower cell to its
+    upper one (one evaluation of F for all of them)."""
+    numbers = list(numbers)
+    if not numbers:
+        return []
+    s = (np.arange(k) + 0.5) / k
+    uvw = np.zeros((len(numbers), k * k, 3))
+    for i, n in enumerate(numbers):
+        f = tiling.faces[n]
+        box = tiling.cells[tuple(f.lower)].box
+        a = f.axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        uvw[i, :, a] = box[1, a]
+        uvw[i, :, b] = box[0, b] + np.repeat(s, k) * (box[1, b] - box[0, b])
+        uvw[i, :, c] = box[0, c] + np.tile(s, k) * (box[1, c] - box[0, c])
+    _, jac = fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+    jac = jac.reshape(len(numbers), k * k, 3, 3)
+    orient = float(getattr(fmap, "orientation", 1) or 1)
+    out = []
+    for i, n in enumerate(numbers):
+        a = tiling.faces[n].axis
+        b, c = (a + 1) % 3, (a + 2) % 3
+        out.append(np.cross(jac[i, :, :, b], jac[i, :, :, c]) * orient)
+    return out
+
+
 def _split_normals(tiling, fmap, step, k=7):
     """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
     mv, fx = set(step.moving), set(step.fixed)
-    s = (np.arange(k) + 0.5) / k
-    out = []
-    for f in tiling.faces:
+    numbers, signs = [], []
+    for n, f in enumerate(tiling.faces):
         lo, up = tuple(f.lower), tuple(f.upper)
-        if not ((lo in mv and up in fx) or (up in mv and lo in fx)):
-            continue
-        box = tiling.cells[lo].box
-        a = f.axis
-        b, c = (a + 1) % 3, (a + 2) % 3
-        uvw = np.zeros((k * k, 3))
-        uvw[:, a] = box[1, a]
-        uvw[:, b] = box[0, b] + np.repeat(s, k) * (box[1, b] - box[0, b])
-        uvw[:, c] = box[0, c] + np.tile(s, k) * (box[1, c] - box[0, c])
-        _, jac = fmap.evaluate_with_jacobian(uvw)
-        n = np.cross(jac[:, :, b], jac[:, :, c]) * float(getattr(fmap, "orientation", 1) or 1)
-        out.append(n * (1.0 if up in mv else -1.0))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        if (lo in mv and up in fx) or (up in mv and lo in fx):
+            numbers.append(n)
+            signs.append(1.0 if up in mv else -1.0)
+    grids = _face_normal_grids(tiling, fmap, numbers, k)
+    return np.concatenate([g * sg for g, sg in zip(grids, signs, strict=True)]) if grids else np.zeros((0, 3))
 
 
 def split_directions(tiling, fmap, plan):
-    """Per step, the mm direction in which its moving block should leave: the area-weighted mean normal of the whole
-    split surface, which bumps cannot tilt the way they tilt the normal at one point -> list of (direction (3,),
+    """Per step, the mm direction in which its moving block should leave: the step's slide when the plan search chose
+    one, else the area-weighted mean normal of the whole split surface, which bumps cannot tilt the way they tilt the
+    normal at one point -> list of (direction (3,),
     min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
     leave along it without touching the other block)."""
     out = []
     for step in plan.steps:
         ns = _split_normals(tiling, fmap, step)
-        d = ns.sum(axis=0)
+        d = ns.sum(axis=0) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
         size = float(np.linalg.norm(d))
         if size < 1e-12:
             out.append((np.zeros(3), -1.0))

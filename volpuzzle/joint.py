@@ -10,8 +10,10 @@ pin with its clearance and wall gets one; a face without one is reported with th
 
 Which way it points. With an assembly plan (volpuzzle.assembly) every face belongs to the one split of the plan that
 parts its two cells, and all pins of a split are parallel to that split's sliding direction (the mean normal of its
-whole cut surface), so a block slides off all its pins at once. A pin therefore leans against its own face by up to
-MAX_TILT_DEG; without a plan it stands normal to its face.
+whole cut surface, or a direction within assembly.MAX_TURN_DEG of it that the plan found to hold more of its faces), so
+a block slides off all its pins at once. A pin therefore leans against its own face by up to MAX_TILT_DEG; without a
+plan it stands normal to its face. place_planned_joints hands the plan search _Setup.holds, so that the plan's cuts
+are the ones whose faces can hold pins along their splits.
 
 Why 30 degrees. A straight pin leaning by t meets its face in an ellipse 1/cos t longer than the pin is wide (1.15 at
 30 deg), and the lip of its hole is a wedge of 90 - t degrees of material; at 30 deg that wedge is 60 deg, which a
@@ -21,8 +23,10 @@ thinner than two extrusion lines on a 1 mm pin.
 
 Where on the face. Each face is sampled on a 13 x 13 grid of points; a point is usable at a size when the pin's
 footprint (widened by its lean) keeps a wall to every edge of the face in both pieces, also at the bottom of its hole,
-and both pieces are deep enough for their part of the joint and a wall. Inside a piece every joint is a cylinder (a
-pin's base, reaching back behind the face; a hole, reaching in) and two of them must keep a wall between them. Faces
+and both pieces are deep enough for their part of the joint and a wall; a point chosen is then measured against the
+cells' real side faces too (_Sides), which a curved or narrowing cell brings closer than its line lengths say. Inside a
+piece every joint is a cylinder (a pin's base, reaching back behind the face; a hole, reaching in) and two of them must
+keep a wall between them. Faces
 are placed one at a time, the plan's own faces first (they hold the puzzle together), each at its roomiest usable
 point that keeps apart from the joints already placed in its two pieces; where none is left at the asked size the pin
 shrinks, down to min_radius and min_length (default MIN_RADIUS, MIN_LENGTH: still printable).
@@ -51,6 +55,8 @@ MIN_RADIUS = JointSpec.min_radius  # mm: the smallest pin a pin shrinks to (2 mm
 MIN_LENGTH = JointSpec.min_length  # mm: the shortest pin that still holds its piece
 DEFAULT_MAX_RADIUS = 2.5  # mm: a derived radius stops growing here; larger pins only when asked
 MAX_TILT_DEG = 30.0  # the most a straight pin may lean against its face (see the module docstring)
+SIDE_WALL = 0.5  # the share of a wall kept, measured on the real side faces (see _Sides)
+_COS_TILT = float(np.cos(np.radians(MAX_TILT_DEG)))
 ALLOW = JOINT_ALLOW  # what joints.allow may accept: pieces without a joint, pieces that cannot come out
 
 
@@ -318,11 +324,30 @@ _CAND = np.array([(sb, sc) for sb in _S for sc in _S])
 
 
 @dataclass(frozen=True, eq=False)
+class _FaceShape:
+    """A face's sample points (k of them), whichever way its pin points: fractions and parameters in both cells
+    {cell side -1 lower, +1 upper: (k, 3)}, mm points x (k, 3), the face normal nrm (k, 3) (+axis), unit in-face
+    tangents of each cell {side: (k, 3, 3)} (row x: along axis x), line lengths {side: (k, 3)}, mm offsets (k, 12, 3)
+    from x to a ring round it as wide as the largest pin, usable (k,) where the face is not collapsed, and dF/duvw
+    {side: (k, 3, 3)}."""
+
+    n: int
+    face: object
+    fr: dict
+    uvw: dict
+    x: np.ndarray
+    nrm: np.ndarray
+    tangents: dict
+    lens: dict
+    ring: np.ndarray
+    usable: np.ndarray
+    jac: dict
+
+
+@dataclass(frozen=True, eq=False)
 class _FaceData:
-    """A face's sample points (k of them): fractions and parameters in both cells (k, 3), mm points x (k, 3), the
-    face normal nrm (k, 3) (+axis), the pin direction d (k, 3), cos (k,) between them, unit in-face tangents of each
-    cell {cell side: (k, 3, 3)} (row x: along axis x), line lengths {side: (k, 3)}, the face's bulge sag (k,) in mm
-    over a disc of the largest pin and usable (k,) where the face is not collapsed."""
+    """A face's sample points with its pin's direction: the _FaceShape fields, the pin direction d (k, 3), cos (k,)
+    between it and the normal, and the face's bulge sag (k,) in mm along d over a disc of the largest pin."""
 
     n: int
     face: object
@@ -339,9 +364,9 @@ class _FaceData:
     jac: dict
 
 
-def _face_data(tiling, fmap, cell_lengths, faces_dirs, reach_max):
-    """_FaceData per face; faces_dirs {face number: unit mm direction lower -> upper} fixes the pin direction (a
-    split's), else the pin stands normal to the face at each point."""
+def _face_shapes(tiling, fmap, cell_lengths, reach_max):
+    """_FaceShape per face of the tiling, in tiling.faces order: the evaluations of F that placement needs, made
+    once, so that many pin directions can be tried on them (_directed)."""
     out = []
     orientation = int(getattr(fmap, "orientation", 1) or 1)
     k = len(_CAND)
@@ -387,19 +412,26 @@ def _face_data(tiling, fmap, cell_lengths, faces_dirs, reach_max):
     xr = fmap.evaluate(np.concatenate(rings)).reshape(len(per), k, 12, 3)
     for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
         nrm, usable = nrms[n]
-        given = faces_dirs.get(n)
-        d = nrm.copy() if given is None else np.repeat(np.asarray(given, float)[None], k, axis=0)
-        cos = np.clip(np.einsum("ki,ki->k", d, nrm), -1.0, 1.0)
         tangents = {}
         for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
             t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
             tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
         lens = {side: np.stack([_len_at(cell_lengths, idx, ax, frs) for ax in range(3)], axis=1)
                 for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
-        sag = np.max(np.abs(np.einsum("kri,ki->kr", xr[n] - x[n][:, None, :], d)), axis=1)
-        out.append(_FaceData(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, d, cos, tangents, lens,
-                             sag, usable & (cos > 1e-6), {-1: jac[n], +1: jac_up[n]}))
+        out.append(_FaceShape(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, tangents, lens,
+                              xr[n] - x[n][:, None, :], usable, {-1: jac[n], +1: jac_up[n]}))
     return out
+
+
+def _directed(shape, direction=None):
+    """The _FaceData of a face whose pins point along the unit mm direction (3,) from its lower cell to its upper
+    one (None: normal to the face at each point)."""
+    k = len(shape.x)
+    d = shape.nrm.copy() if direction is None else np.repeat(np.asarray(direction, float)[None], k, axis=0)
+    cos = np.clip(np.einsum("ki,ki->k", d, shape.nrm), -1.0, 1.0)
+    sag = np.max(np.abs(np.einsum("kri,ki->kr", shape.ring, d)), axis=1)
+    return _FaceData(shape.n, shape.face, shape.fr, shape.uvw, shape.x, shape.nrm, d, cos, shape.tangents, shape.lens,
+                     sag, shape.usable & (cos > 1e-6), shape.jac)
 
 
 def _base(fd, s):
@@ -440,7 +472,7 @@ def _fits(fd, s, lean=True, limit=True):
             ok &= fr[:, x] * lens[:, x] >= foot + np.maximum(-shift, 0.0) - 1e-9
         ok &= lens[:, a] >= depth * cos + rho * sin + s.wall - 1e-9
     if lean and limit:
-        ok &= fd.cos >= np.cos(np.radians(MAX_TILT_DEG)) - 1e-12
+        ok &= fd.cos >= _COS_TILT - 1e-12
     return ok
 
 
@@ -544,6 +576,138 @@ def _split_dirs(tiling, fmap, plan):
     return out
 
 
+class _Sides:
+    """The real side faces of the cells, sampled in mm, to measure a placed joint against: _fits judges a point by the
+    lengths of the cell's parameter lines, as if F ran at an even speed along them and the cell were straight; near a
+    pole, where a cell narrows to a wedge, a leaning pin then broke 3.6 mm^3 into the piece beside its hole."""
+
+    def __init__(self, tiling, fmap, count=16):
+        self.tiling, self.fmap, self.count = tiling, fmap, count
+        self._faces, self._clear = {}, {}
+
+    def _face(self, idx, axis, end):
+        """Points (m, 3), unit normals (m, 3) (zero where collapsed), interior (m,) and box (2, 3) of a cell's face
+        (all six of a cell evaluated at once, on first use)."""
+        idx = tuple(idx)
+        if idx not in self._faces:
+            lo, hi = self.tiling.cells[idx].box
+            g = np.linspace(0.0, 1.0, self.count)
+            m = self.count * self.count
+            uvw = np.empty((6, m, 3))
+            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
+                b, c = _cyclic(ax)
+                uvw[f, :, ax] = hi[ax] if e else lo[ax]
+                uvw[f, :, b] = lo[b] + np.repeat(g, self.count) * (hi[b] - lo[b])
+                uvw[f, :, c] = lo[c] + np.tile(g, self.count) * (hi[c] - lo[c])
+            x, jac = self.fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+            x, jac = x.reshape(6, m, 3), jac.reshape(6, m, 3, 3)
+            edge = np.zeros((self.count, self.count), bool)
+            edge[[0, -1], :] = edge[:, [0, -1]] = True
+            faces = {}
+            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
+                b, c = _cyclic(ax)
+                nrm = np.cross(jac[f, :, :, b], jac[f, :, :, c])
+                size = np.linalg.norm(nrm, axis=1)
+                real = size > 1e-9 * max(float(size.max()), 1e-300)
+                nrm = np.where(real[:, None], nrm / np.maximum(size, 1e-300)[:, None], 0.0)
+                faces[(ax, e)] = (x[f], nrm, ~edge.ravel(), np.array([x[f].min(axis=0), x[f].max(axis=0)]))
+            self._faces[idx] = faces
+        return self._faces[idx][(axis, end)]
+
+    def distance(self, idx, keep_out, p, beyond=np.inf):
+        """mm (n,) from points p (n, 3) to the nearest of the cell's faces other than keep_out (axis, end): across the
+        tangent plane of the nearest sample inside a face, straight to a sample on its rim. Faces whose box lies
+        `beyond` mm or more from the points' box are skipped (their distance counts as inf)."""
+        out = np.full(len(p), np.inf)
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        for axis in range(3):
+            for end in (0, 1):
+                if (axis, end) == keep_out:
+                    continue
+                x, nrm, inner, box = self._face(idx, axis, end)
+                gap = np.maximum(np.maximum(box[0] - hi, lo - box[1]), 0.0)
+                if float(np.linalg.norm(gap)) >= beyond:
+                    continue
+                diff = p[:, None, :] - x[None, :, :]
+                dist = np.einsum("nmi,nmi->nm", diff, diff)
+                near = np.argmin(dist, axis=1)
+                rows = np.arange(len(p))
+                plane = np.abs(np.einsum("ni,ni->n", diff[rows, near], nrm[near]))
+                d = np.where(inner[near] & np.any(nrm[near] != 0.0, axis=1), plane, np.sqrt(dist[rows, near]))
+                out = np.minimum(out, d)
+        return out
+
+    def clear(self, fd, k, s):
+        """Whether the joint at point k of face fd at size s keeps its radius and SIDE_WALL of a wall to every other
+        face of both its cells along its whole length (the hole in the upper cell, the pin's base in the lower)."""
+        key = (fd.n, k, s, tuple(np.round(fd.d[k], 9)))  # placement tries again what the plan already asked
+        if key in self._clear:
+            return self._clear[key]
+        a = fd.face.axis
+        out = True
+        for side, idx, keep_out in ((-1, fd.face.lower, (a, 1)), (+1, fd.face.upper, (a, 0))):
+            depth, way, rho = _intrusion(fd, s, side)
+            need = rho + SIDE_WALL * s.wall - 1e-9
+            t = np.linspace(0.0, float(depth[k]), 7)
+            p = fd.x[k][None, :] + (way * t)[:, None] * fd.d[k][None, :]
+            if float(self.distance(idx, keep_out, p, beyond=need).min()) < need:
+                out = False
+                break
+        self._clear[key] = out
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Setup:
+    """What placing joints on a tiling starts from: the asked sizes, the smallest a pin may shrink to, the sizes
+    tried largest first, and the faces' shapes (tiling.faces order)."""
+
+    sizes: _Sizes
+    r_min: float
+    l_min: float
+    steps: tuple
+    shapes: list
+    space: str
+    sides: _Sides
+
+    def holds(self, n, direction):
+        """Whether face number n holds the smallest pin (alone) pointing along the unit mm direction (3,) from its
+        lower cell to its upper one: what an assembly plan asks of a split's direction."""
+        shape = self.shapes[n]
+        if not np.any(shape.nrm[shape.usable] @ np.asarray(direction, float) >= _COS_TILT - 1e-12):
+            return False  # leaning too far everywhere: what _fits finds last, at a fraction of its cost
+        fd = _directed(shape, direction)
+        ok = _fits(fd, self.steps[-1])
+        # the roomiest few points that fit are measured against the real side faces, as placement will
+        for k in np.argsort(-np.where(ok, _room_score(fd), -np.inf))[:min(int(ok.sum()), 4)]:
+            if self.sides.clear(fd, int(k), self.steps[-1]):
+                return True
+        return False
+
+
+def _setup(tiling, fmap, joint_spec):
+    """The _Setup of place_joints for a spec.JointSpec whose style is not none. Raises SpecError for sizes that are
+    not positive."""
+    cell_lengths = _measure(tiling, fmap)
+    r_given, l_given = joint_spec.radius, joint_spec.length
+    r_def, l_def = default_sizes(tiling, fmap, cell_lengths)
+    sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
+                   float(joint_spec.clearance), float(joint_spec.axial_clearance), joint_spec.style, joint_spec.shape)
+    r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
+    problems = []
+    for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
+                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
+                        ("min_radius", r_min, 0.0), ("min_length", l_min, 0.0)):
+        if not np.isfinite(v) or v <= low:
+            problems.append(f"joints.{key}: must be {'positive' if low == 0 else 'zero or more'} (got {v:g})")
+    if problems:
+        raise SpecError(problems)
+    # never shrink below what was asked, when that is smaller than the minimum
+    r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
+    return _Setup(sizes, r_min, l_min, tuple(_size_steps(sizes, r_min, l_min)),
+                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space, _Sides(tiling, fmap))
+
+
 def place_joints(tiling, fmap, joint_spec=None, plan=None):
     """A joint on every shared face with room for one -> Layout (joints, one contact record per face).
 
@@ -557,40 +721,27 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
     if style == "none" or not tiling.faces:
         return Layout((), tuple(_contact(f, False, None, "joints.style is none" if style == "none" else None)
                                 for f in tiling.faces))
-    space = joint_spec.space
-    cell_lengths = _measure(tiling, fmap)
-    r_given, l_given = joint_spec.radius, joint_spec.length
-    r_def, l_def = default_sizes(tiling, fmap, cell_lengths)
-    sizes = _Sizes(float(r_def if r_given is None else r_given), float(l_def if l_given is None else l_given),
-                   float(joint_spec.clearance), float(joint_spec.axial_clearance), style, joint_spec.shape)
-    r_min, l_min = float(joint_spec.min_radius), float(joint_spec.min_length)
-    problems = []
-    for key, v, low in (("radius", sizes.radius, 0.0), ("length", sizes.length, 0.0),
-                        ("clearance", sizes.clearance, -1e-12), ("axial_clearance", sizes.axial_clearance, -1e-12),
-                        ("min_radius", r_min, 0.0), ("min_length", l_min, 0.0)):
-        if not np.isfinite(v) or v <= low:
-            problems.append(f"joints.{key}: must be {'positive' if low == 0 else 'zero or more'} (got {v:g})")
-    if problems:
-        raise SpecError(problems)
-    # never shrink below what was asked, when that is smaller than the minimum
-    r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
+    return _place(tiling, fmap, _setup(tiling, fmap, joint_spec), plan)
 
+
+def _place(tiling, fmap, setup, plan):
+    """place_joints on a _Setup."""
+    sizes, r_min, l_min, steps, space = setup.sizes, setup.r_min, setup.l_min, list(setup.steps), setup.space
     dirs = _split_dirs(tiling, fmap, plan) if plan is not None else {}
-    data = _face_data(tiling, fmap, cell_lengths, dirs, sizes.reach)
-    steps = _size_steps(sizes, r_min, l_min)
+    data = [_directed(shape, dirs.get(shape.n)) for shape in setup.shapes]
     first = {n for n, _ in plan.faces_with_joints} if plan is not None else set()
     smallest = steps[-1]
     alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
     order = sorted(range(len(data)), key=lambda n: (n not in first, alone[n], n))
     cells = list(tiling.cells)
-    chosen = _greedy(data, steps, order, cells)
+    chosen = _greedy(data, steps, order, cells, setup.sides)
     for _ in range(4):
         # a face that shrank or got nothing goes first next time, kept if the puzzle is better for it
         late = [n for n in order if n not in chosen or chosen[n][1] is not sizes]
         if not late:
             break
         order = sorted(order, key=lambda n: n not in late)
-        again = _greedy(data, steps, order, cells)
+        again = _greedy(data, steps, order, cells, setup.sides)
         if _cost(again, sizes, data, cells) >= _cost(chosen, sizes, data, cells):
             break
         chosen = again
@@ -600,7 +751,7 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
         f = fd.face
         room = bool(_fits(fd, smallest, lean=False).any())
         if n not in chosen:
-            contacts.append(_contact(f, room, None, _why_not(fd, smallest, room, r_min, l_min)))
+            contacts.append(_contact(f, room, None, _why_not(fd, smallest, room, r_min, l_min, setup.sides)))
             continue
         k, s = chosen[n]
         base = float(_base(fd, s)[k])
@@ -620,9 +771,10 @@ def place_joints(tiling, fmap, joint_spec=None, plan=None):
                    "min_length_mm": l_min})
 
 
-def _greedy(data, steps, order, cells):
+def _greedy(data, steps, order, cells, sides=None):
     """Faces in `order`, each at its roomiest point that fits and keeps a wall to the joints already placed in its two
-    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}."""
+    cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}. sides
+    (_Sides): the point is also measured against the cells' real side faces."""
     inside = {idx: [] for idx in cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
     chosen = {}
     for n in order:
@@ -639,8 +791,12 @@ def _greedy(data, steps, order, cells):
                     ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
                     if not ok.any():
                         break
-            if ok.any():
+            while ok.any():
                 k = int(np.argmax(np.where(ok, score, -np.inf)))
+                if sides is None or sides.clear(fd, k, s):
+                    break
+                ok[k] = False
+            if ok.any():
                 chosen[n] = (k, s)
                 for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
                     p0, p1, rp = segs[side]
@@ -658,7 +814,7 @@ def _cost(chosen, sizes, data, cells):
             round(sum(sizes.radius - s.radius for s in small), 6))
 
 
-def _why_not(fd, smallest, room, r_min, l_min):
+def _why_not(fd, smallest, room, r_min, l_min, sides=None):
     """One sentence: why face fd carries no joint."""
     if not fd.usable.any():
         return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
@@ -675,6 +831,11 @@ def _why_not(fd, smallest, room, r_min, l_min):
         lean = float(np.degrees(np.arccos(np.clip(fd.cos[leaning].max(), -1.0, 1.0))))
         return (f"tilt: its split slides at least {np.floor(lean * 10) / 10:g} deg off the face's normal where a pin "
                 f"fits, more than the {MAX_TILT_DEG:g} deg a straight pin may lean")
+    ok = _fits(fd, smallest)
+    if sides is not None and not any(sides.clear(fd, int(k), smallest) for k in np.flatnonzero(ok)):
+        return (f"no room: where a pin of {smallest.radius:g} mm fits the face, it or its hole would come within "
+                f"{SIDE_WALL * smallest.wall:g} mm of another face of {piece_id(fd.face.lower)} or "
+                f"{piece_id(fd.face.upper)} (the pieces bend or narrow there)")
     return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "
             f"{piece_id(fd.face.upper)}")
 
@@ -934,12 +1095,15 @@ def place_planned_joints(tiling, fmap, joint_spec):
     With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is planned
     first (blocks that slide apart) and every pin of a split points along its sliding direction.
     """
-    plan = None
-    if joint_spec.style != "none" and tiling.faces:
+    if joint_spec.style == "none" or not tiling.faces:
+        layout, plan = place_joints(tiling, fmap, joint_spec), None
+    else:
         from .assembly import plan_assembly
 
-        plan = plan_assembly(tiling, fmap)
-    layout = place_joints(tiling, fmap, joint_spec, plan)
+        # the plan is searched for splits whose sliding directions its faces can hold pins along
+        setup = _setup(tiling, fmap, joint_spec)
+        plan = plan_assembly(tiling, fmap, holds=setup.holds)
+        layout = _place(tiling, fmap, setup, plan)
     if plan is not None:
         from .assembly import with_joints
 
