@@ -23,9 +23,16 @@ def _integrate(vol, counts):
     step = max(1, int(2_000_000 // max(1, len(v) * len(w))))  # bound memory: chunks of u
     for s in range(0, len(u), step):
         _, d = vol.derivatives_grid(u[s:s + step], v, w)
-        det = np.abs(np.linalg.det(d))
+        det = np.abs(_det3(d))
         total += float(np.einsum("abc,a,b,c->", det, wu[s:s + step], wv, ww))
     return total
+
+
+def _det3(m):
+    """(..., 3, 3) -> (...,): the 3 x 3 determinant by cofactors, ~10x np.linalg.det's batched LU on millions."""
+    return (m[..., 0, 0] * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
+            - m[..., 0, 1] * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
+            + m[..., 0, 2] * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0]))
 
 
 def volume(vol, rtol=1e-10):
@@ -33,12 +40,13 @@ def volume(vol, rtol=1e-10):
 
     Gauss-Legendre per knot span. A polynomial det J has degree 3p-1 per axis, so ceil(3p/2) points per span
     integrate it exactly (where det J does not change sign). For a rational volume det J is a rational
-    function: the point count grows until two orders agree to rtol (relative), up to 48 per span.
+    function: the point count grows from the polynomial one until two orders agree to rtol (relative), up to 48
+    per span (a finely refined model, the duck's shell with 7,000 spans, agrees at the first step).
     """
     exact = [int(np.ceil(3 * p / 2)) for p in vol.degrees]
     if not vol.is_rational:
         return _integrate(vol, exact)
-    n = [e + 2 for e in exact]
+    n = exact
     prev = _integrate(vol, n)
     while True:
         n = [min(_MAX_NODES, c + max(2, c // 2)) for c in n]
