@@ -664,7 +664,8 @@ def surface_distance(x, uv, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv,
     dNv = np.zeros(MAXP)
     ddNv = np.zeros(MAXP)
     B = np.empty(MAXP)
-    H = np.empty((6, 4))
+    H = np.empty((6, 4))  # the sums at the current (u, v): an accepted trial's are kept, not recomputed
+    T = np.empty((6, 4))  # and at a trial point
     S = np.empty((6, 3))
     for idx in range(start, stop):
         xi = x[idx]
@@ -673,7 +674,6 @@ def surface_distance(x, uv, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv,
         _sums2_at(u, v, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, H, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
         d = _gap(H, xi)
         for _ in range(iterations):
-            _sums2_at(u, v, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, H, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
             w = H[0, 3]
             for c in range(3):  # the quotient rule (NURBS Book A4.4) up to second order
                 s0 = H[0, c] / w
@@ -711,10 +711,11 @@ def surface_distance(x, uv, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv,
             for _halve in range(8):
                 tu = min(max(u - step_u, dom[0, 0]), dom[0, 1])
                 tv = min(max(v - step_v, dom[1, 0]), dom[1, 1])
-                _sums2_at(tu, tv, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, H, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
-                td = _gap(H, xi)
+                _sums2_at(tu, tv, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, T, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
+                td = _gap(T, xi)
                 if td <= d:
                     nu, nv, nd = tu, tv, td
+                    H[:] = T
                     break
                 step_u *= 0.5
                 step_v *= 0.5
