@@ -5,6 +5,7 @@ import numpy as np
 from .knots import breaks as _breaks
 
 _MAX_NODES = 48  # Gauss-Legendre points per span and axis for rational volumes, at most
+_MAX_FACE_SAMPLES = 200  # bbox samples per axis of a face, about, at most
 
 
 def _gauss_nodes(brk, n):
@@ -71,7 +72,10 @@ def _face_params(vol, axis, side, per_span):
             lists.append(np.array([dom[side, a]]))
         else:
             brk = _breaks(vol.knots[a], vol.degrees[a])
-            s = np.linspace(0, 1, per_span + 1)[:-1]
+            # at most ~_MAX_FACE_SAMPLES per axis: a finely refined model (the duck's shell, 88 spans) needs no
+            # 1,000 x 1,000 samples per face before the polish; up to 16 spans keep per_span
+            n = max(2, min(per_span, _MAX_FACE_SAMPLES // (len(brk) - 1)))
+            s = np.linspace(0, 1, n + 1)[:-1]
             pts = (brk[:-1, None] + s[None] * np.diff(brk)[:, None]).ravel()
             lists.append(np.r_[pts, brk[-1]])
     return lists
@@ -83,9 +87,9 @@ def bbox(vol, per_span=12, polish=3):
     An extreme coordinate over the image of the closed domain is attained on its boundary (inside, where
     det J != 0, the map is open), so the six boundary faces are sampled (per_span points per knot span and
     axis) and the best `polish` samples of each of the six extremes are polished by a bounded quasi-Newton
-    search on their face. Accurate to ~1e-12 of the box size unless a face has a narrow extreme missed by
-    every sample (then it is still within one sample spacing's worth of curvature); always inside
-    control_net_bbox.
+    search on their face (per_span drops where a face has more than 16 spans). Accurate to ~1e-12 of the box
+    size unless a face has a narrow extreme missed by every sample (then it is still within one sample spacing's
+    worth of curvature); always inside control_net_bbox.
     """
     from scipy.optimize import minimize  # a second to import: loaded when a model is measured, not on every start
 
