@@ -52,3 +52,16 @@ def test_rational_quarter_cylinder_shell():
     net = control_net_bbox(vol.transformed(rot))
     assert np.all(net[0] <= b[0] + 1e-12) and np.all(net[1] >= b[1] - 1e-12)
     assert net[1, 1] > 2.0 + 1e-3  # the control net box is looser
+
+
+def test_finely_refined_shell_keeps_its_volume_and_box():
+    """A model of many spans (60 along the arc, as a refined shell has) is sampled more sparsely per span for its box
+    and starts its quadrature lower: the closed forms still hold, the rotated extreme inside a face included."""
+    c = np.cos(np.pi / 4)
+    vol = quarter_cylinder_shell(1.0, 2.0, 3.0).transformed(np.array([[c, -c, 0], [c, c, 0], [0, 0, 1.0]]))
+    for t in np.linspace(0, 1, 62)[1:-1]:
+        vol = vol.insert_knot(0, t)
+    assert volume(vol) == pytest.approx(np.pi / 4 * (4 - 1) * 3, rel=1e-10)
+    b = bbox(vol)
+    assert b[0, 0] == pytest.approx(-2 * c, abs=1e-9) and b[1, 1] == pytest.approx(2.0, abs=1e-9)
+    np.testing.assert_allclose(b[:, 2], [0, 3], atol=1e-12)

@@ -120,6 +120,37 @@ def test_derivatives_match_differences_and_geomdl():
     assert geomdl is not None
 
 
+@pytest.mark.parametrize("rational", [True, False])
+def test_compiled_derivatives_match_the_numpy_sums(rational):
+    """The compiled second-order kernel against the numpy reference, on knots, the domain's ends and beyond it
+    (clamped), for every order the kernel serves."""
+    s = _small(rational)
+    rng = np.random.default_rng(7)
+    uv = np.concatenate([rng.uniform(-0.1, 1.1, (400, 2)), [[0.4, 0.5], [0, 0], [1, 1], [0, 1]]])
+    for order in (0, 1, 2):
+        ref = s._numpy_sums(np.clip(uv, 0, 1), order)
+        assert np.allclose(s._compiled_sums(uv, order), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    assert s.derivatives(uv, 3).shape == (len(uv), 4, 4, 3)  # beyond the kernel: the numpy path
+
+
+def test_compiled_distance_matches_the_numpy_newton():
+    """shell.distance_to's compiled kernel takes the numpy loop's steps: the same distances, and they are true
+    distances (no point of a dense sample is nearer)."""
+    from volpuzzle.shell import _distance_numpy, distance_to
+
+    s = _small()
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(0.05, 0.95, (300, 2))
+    x = s.evaluate(uv) + 0.3 * s.normals(uv) + rng.normal(0, 0.05, (300, 3))
+    start = np.clip(uv + rng.normal(0, 0.03, uv.shape), 0, 1)
+    d = distance_to(s, x, start)
+    assert np.allclose(d, _distance_numpy(s, x, start), rtol=0, atol=1e-9)
+    g = np.stack(np.meshgrid(np.linspace(0, 1, 200), np.linspace(0, 1, 200), indexing="ij"), -1).reshape(-1, 2)
+    dense = s.evaluate(g)
+    nearest = np.min(np.linalg.norm(x[:, None] - dense[None], axis=2), axis=1)
+    assert np.all(d <= nearest + 1e-9) and np.all(d >= nearest - 0.02)
+
+
 def test_duck_file_poles_and_seam():
     s = load_surface(DATA / "glscene_duck1.nurbs")
     assert s.degrees == (3, 3) and s.shape == (13, 14)

@@ -200,7 +200,7 @@ def fit_offset(surf, thickness):
     tie = sparse.csr_matrix((np.ones(var.size), (np.arange(var.size), var.ravel())), shape=(var.size, n))
     a = _rational_rows(surf, u, v) @ tie
     ata = (a.T @ a).tocsc()
-    x = spsolve(ata, a.T @ target)
+    x = spsolve(ata, a.T @ target, permc_spec="MMD_AT_PLUS_A")  # ata is symmetric: ~4x COLAMD's time here
     x = np.asarray(x).reshape(n, 3)
     return Surface(surf.degrees, surf.knots, x[var], surf.weights)
 
@@ -209,7 +209,13 @@ def distance_to(surf, x, uv, iterations=20):
     """Distance from points x (n, 3) to surf, by Newton from the parameters uv (n, 2) of a nearby foot point
     (clamped to the domain) -> (n,). Newton, not Gauss-Newton: from a point t beyond a hollow of radius R < t (an
     inward offset in a crease, an outward one round a tight ridge) Gauss-Newton's step is 1 + t / R times too long
-    and diverges; a step that does not bring the surface nearer is halved."""
+    and diverges; a step that does not bring the surface nearer is halved. Compiled (each point alone, the same
+    steps: ~100x) when numba is there; the numpy loop below is the reference."""
+    dist = surf.distance_compiled(x, uv, iterations)
+    return dist if dist is not None else _distance_numpy(surf, x, uv, iterations)
+
+
+def _distance_numpy(surf, x, uv, iterations=20):
     dom = np.array(surf.domain)
     uv = np.array(uv, dtype=float)
     dist = np.linalg.norm(surf.evaluate(uv) - x, axis=1)

@@ -558,6 +558,174 @@ def derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, 
             der[idx, ch, 2] = a_w
 
 
+@njit(cache=True, fastmath=_FM, nogil=True)
+def _basis2(br, invh, ext, p, t, N, dN, ddN, B):
+    """Element index of t (clamped) and the p+1 basis values, first and second derivatives in N, dN, ddN: the
+    Bernstein values are raised one degree at a time, and degrees p-2, p-1, p give the three (d^2/ds^2 B^p_m =
+    p (p-1) (B^{p-2}_{m-2} - 2 B^{p-2}_{m-1} + B^{p-2}_m))."""
+    lo, s = _locate(br, invh, t)
+    r1 = 1.0 - s
+    for i in range(p + 1):
+        ddN[i] = 0.0
+        dN[i] = 0.0
+    B[0] = 1.0
+    for q in range(p + 1):
+        if q > 0:
+            saved = 0.0
+            for r in range(q):
+                tmp = B[r]
+                B[r] = saved + r1 * tmp
+                saved = s * tmp
+            B[q] = saved
+        if q == p - 2:
+            h2 = p * (p - 1) * invh[lo] * invh[lo]
+            for i in range(p + 1):
+                acc = 0.0
+                for m in range(p - 1):
+                    acc += B[m] * (ext[lo, i, m + 2] - 2.0 * ext[lo, i, m + 1] + ext[lo, i, m])
+                ddN[i] = h2 * acc
+        elif q == p - 1:
+            h = p * invh[lo]
+            for i in range(p + 1):
+                acc = 0.0
+                for m in range(p):
+                    acc += B[m] * (ext[lo, i, m + 1] - ext[lo, i, m])
+                dN[i] = h * acc
+        elif q == p:
+            for i in range(p + 1):
+                acc = 0.0
+                for m in range(p + 1):
+                    acc += ext[lo, i, m] * B[m]
+                N[i] = acc
+    return lo
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def _sums2_at(u, v, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, H, Nu, dNu, ddNu, Nv, dNv, ddNv, B):
+    """Homogeneous sums of a surface at (u, v) and their partials up to second order into H (6, d): S, S_u, S_v,
+    S_uu, S_uv, S_vv. Generic loops: the surface path (shell offsets) is far smaller than the volumes' and does not
+    earn unrolled variants."""
+    i0 = fu[_basis2(bu, hu, xu, pu, u, Nu, dNu, ddNu, B)]
+    j0 = fv[_basis2(bv, hv, xv, pv, v, Nv, dNv, ddNv, B)]
+    for c in range(cp.shape[2]):
+        a00 = a10 = a01 = a20 = a11 = a02 = 0.0
+        for i in range(pu + 1):
+            b0 = b1 = b2 = 0.0
+            for j in range(pv + 1):
+                x = cp[i0 + i, j0 + j, c]
+                b0 += Nv[j] * x
+                b1 += dNv[j] * x
+                b2 += ddNv[j] * x
+            a00 += Nu[i] * b0
+            a10 += dNu[i] * b0
+            a20 += ddNu[i] * b0
+            a01 += Nu[i] * b1
+            a11 += dNu[i] * b1
+            a02 += Nu[i] * b2
+        H[0, c] = a00
+        H[1, c] = a10
+        H[2, c] = a01
+        H[3, c] = a20
+        H[4, c] = a11
+        H[5, c] = a02
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def surface_sums2(uv, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, out):
+    """_sums2_at at scattered points: uv (n, 2), cp (n_u, n_v, d) -> out[start:stop] (n, 6, d)."""
+    Nu = np.zeros(MAXP)
+    dNu = np.zeros(MAXP)
+    ddNu = np.zeros(MAXP)
+    Nv = np.zeros(MAXP)
+    dNv = np.zeros(MAXP)
+    ddNv = np.zeros(MAXP)
+    B = np.empty(MAXP)
+    for idx in range(start, stop):
+        _sums2_at(uv[idx, 0], uv[idx, 1], bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, out[idx], Nu, dNu, ddNu,
+                  Nv, dNv, ddNv, B)
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def _gap(H, x):
+    """|S - x| from homogeneous sums H (6, 4)."""
+    w = H[0, 3]
+    return np.sqrt((H[0, 0] / w - x[0]) ** 2 + (H[0, 1] / w - x[1]) ** 2 + (H[0, 2] / w - x[2]) ** 2)
+
+
+@njit(cache=True, fastmath=_FM, nogil=True)
+def surface_distance(x, uv, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, dom, iterations, dist):
+    """Distance from points x (n, 3) to a surface with homogeneous net cp (n_u, n_v, 4), by Newton from uv (n, 2),
+    each point alone -> dist[start:stop]. The algorithm and its constants are shell.distance_to's (see there why
+    Newton and not Gauss-Newton, and the halving); dom (2, 2) the domain it clamps to."""
+    Nu = np.zeros(MAXP)
+    dNu = np.zeros(MAXP)
+    ddNu = np.zeros(MAXP)
+    Nv = np.zeros(MAXP)
+    dNv = np.zeros(MAXP)
+    ddNv = np.zeros(MAXP)
+    B = np.empty(MAXP)
+    H = np.empty((6, 4))  # the sums at the current (u, v): an accepted trial's are kept, not recomputed
+    T = np.empty((6, 4))  # and at a trial point
+    S = np.empty((6, 3))
+    for idx in range(start, stop):
+        xi = x[idx]
+        u = min(max(uv[idx, 0], dom[0, 0]), dom[0, 1])
+        v = min(max(uv[idx, 1], dom[1, 0]), dom[1, 1])
+        _sums2_at(u, v, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, H, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
+        d = _gap(H, xi)
+        for _ in range(iterations):
+            w = H[0, 3]
+            for c in range(3):  # the quotient rule (NURBS Book A4.4) up to second order
+                s0 = H[0, c] / w
+                su = (H[1, c] - H[1, 3] * s0) / w
+                sv = (H[2, c] - H[2, 3] * s0) / w
+                S[0, c] = s0 - xi[c]
+                S[1, c] = su
+                S[2, c] = sv
+                S[3, c] = (H[3, c] - 2.0 * H[1, 3] * su - H[3, 3] * s0) / w
+                S[4, c] = (H[4, c] - H[1, 3] * sv - H[2, 3] * su - H[4, 3] * s0) / w
+                S[5, c] = (H[5, c] - 2.0 * H[2, 3] * sv - H[5, 3] * s0) / w
+            a = b = c_ = ha = hb = hc = ru = rv = 0.0
+            for c in range(3):
+                r = S[0, c]
+                a += S[1, c] * S[1, c]
+                b += S[1, c] * S[2, c]
+                c_ += S[2, c] * S[2, c]
+                ha += r * S[3, c]
+                hb += r * S[4, c]
+                hc += r * S[5, c]
+                ru += S[1, c] * r
+                rv += S[2, c] * r
+            ha += a
+            hb += b
+            hc += c_
+            if ha > 0 and ha * hc - hb * hb > 0:
+                a, b, c_ = ha, hb, hc
+            reg = 1e-12 * (abs(a) + abs(c_))
+            a += reg
+            c_ += reg
+            det = a * c_ - b * b
+            step_u = (c_ * ru - b * rv) / det
+            step_v = (a * rv - b * ru) / det
+            nu, nv, nd = u, v, d
+            for _halve in range(8):
+                tu = min(max(u - step_u, dom[0, 0]), dom[0, 1])
+                tv = min(max(v - step_v, dom[1, 0]), dom[1, 1])
+                _sums2_at(tu, tv, bu, hu, fu, xu, bv, hv, fv, xv, pu, pv, cp, T, Nu, dNu, ddNu, Nv, dNv, ddNv, B)
+                td = _gap(T, xi)
+                if td <= d:
+                    nu, nv, nd = tu, tv, td
+                    H[:] = T
+                    break
+                step_u *= 0.5
+                step_v *= 0.5
+            gain = d - nd
+            u, v, d = nu, nv, nd
+            if not gain > 1e-9:
+                break
+        dist[idx] = d
+
+
 # The four block functions are the entries, called from Python on [start, stop) of the points (volume.py splits large
 # batches over threads, which these nogil kernels allow). numba's prange entries cost a parfor compilation each and
 # made every block function compile twice (a literal and an int64 start): 16 versions and 38.8 s on a cold cache.

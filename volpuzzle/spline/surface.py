@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import ModelError
 from . import basis
 from . import knots as knots_mod
-from .volume import TensorSpline, Volume, _readonly
+from .volume import _PARALLEL_MIN, _POOL, TensorSpline, Volume, _fast_module, _readonly, _threads
 
 _W_KNOTS = np.array([0.0, 0.0, 1.0, 1.0])
 
@@ -87,22 +87,10 @@ class Surface(TensorSpline):
     def derivatives(self, uv, order=2):
         """(n, 2) -> (n, order+1, order+1, 3): [i, k, l] = d^(k+l) S / du^k dv^l (NURBS Book A3.6 and A4.4)."""
         uv = np.asarray(uv, dtype=float)
-        loc = []
-        for a in range(2):
-            p, k = self.degrees[a], self.knots[a]
-            t = np.clip(uv[:, a], k[p], k[-p - 1])
-            span = basis.find_span(k, p, t)
-            loc.append((span, basis.basis_derivatives(k, p, t, min(order, p), span)))
-        (su, bu), (sv, bv) = loc
-        pu, pv = self.degrees
-        iu = su[:, None] - pu + np.arange(pu + 1)
-        iv = sv[:, None] - pv + np.arange(pv + 1)
-        local = self.homogeneous()[iu[:, :, None], iv[:, None, :]]  # (n, pu+1, pv+1, 4)
         n = len(uv)
-        h = np.zeros((n, order + 1, order + 1, 4))
-        for k in range(min(order, pu) + 1):
-            for m in range(min(order - k, pv) + 1):
-                h[:, k, m] = np.einsum("ni,nj,nijd->nd", bu[:, k], bv[:, m], local)
+        h = self._compiled_sums(uv, order) if order <= 2 else None
+        if h is None:
+            h = self._numpy_sums(uv, order)
         a, w = h[..., :3], h[..., 3]
         out = np.zeros((n, order + 1, order + 1, 3))
         for k in range(order + 1):
@@ -116,6 +104,68 @@ class Surface(TensorSpline):
                         v -= comb(k, i) * comb(m, j) * w[:, i, j, None] * out[:, k - i, m - j]
                 out[:, k, m] = v / w[:, 0, 0, None]
         return out
+
+    @cached_property
+    def _hnet(self):
+        # the compiled surface kernel's net: homogeneous even when polynomial (weights 1), one array type
+        return np.require(self.homogeneous(), np.float64, ["C", "W"])
+
+    def _compiled_sums(self, uv, order):
+        """Homogeneous sums and partials up to order <= 2 by the compiled kernel -> (n, order+1, order+1, 4), or
+        None without numba. ~50x the numpy path: the shell's offset fit measures its distance to S with Newton
+        steps at up to ~10^5-10^6 points per round."""
+        n = len(uv)
+        out = np.empty((n, 6, 4))
+        if not self._run_compiled("surface_sums2", n, (np.require(uv, np.float64, ["C", "W"]),), (out,)):
+            return None
+        h = np.zeros((n, order + 1, order + 1, 4))
+        for slot, (k, m) in enumerate(((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))):
+            if k + m <= order:
+                h[:, k, m] = out[:, slot]
+        return h
+
+    def _run_compiled(self, name, n, before, after):
+        """Run the compiled surface kernel `name`(*before, start, stop, *tables of u and v, pu, pv, net, *after) over
+        n points, split over the spline thread pool when large -> False without numba."""
+        fast = _fast_module()
+        if fast is None:
+            return False
+        fn, tables = getattr(fast, name), self.as_volume._tables
+        tail = (*tables.u, *tables.v, int(self.degrees[0]), int(self.degrees[1]), self._hnet, *after)
+        pool = _threads() if n >= _PARALLEL_MIN else None
+        if pool is None:
+            fn(*before, 0, n, *tail)
+        else:  # each point computed alone: the bits do not depend on the split
+            step = max(1024, -(-n // (4 * _POOL["workers"])))
+            list(pool.map(lambda s: fn(*before, s, min(n, s + step), *tail), range(0, n, step)))
+        return True
+
+    def _numpy_sums(self, uv, order):
+        """The numpy path of the homogeneous sums (reference, and any order) -> (n, order+1, order+1, 4)."""
+        loc = []
+        for a in range(2):
+            p, k = self.degrees[a], self.knots[a]
+            t = np.clip(uv[:, a], k[p], k[-p - 1])
+            span = basis.find_span(k, p, t)
+            loc.append((span, basis.basis_derivatives(k, p, t, min(order, p), span)))
+        (su, bu), (sv, bv) = loc
+        pu, pv = self.degrees
+        iu = su[:, None] - pu + np.arange(pu + 1)
+        iv = sv[:, None] - pv + np.arange(pv + 1)
+        local = self.homogeneous()[iu[:, :, None], iv[:, None, :]]  # (n, pu+1, pv+1, 4)
+        h = np.zeros((len(uv), order + 1, order + 1, 4))
+        for k in range(min(order, pu) + 1):
+            for m in range(min(order - k, pv) + 1):
+                h[:, k, m] = np.einsum("ni,nj,nijd->nd", bu[:, k], bv[:, m], local)
+        return h
+
+    def distance_compiled(self, x, uv, iterations):
+        """shell.distance_to by the compiled kernel: x (n, 3), uv (n, 2) -> (n,), or None without numba."""
+        n = len(x)
+        dist = np.empty(n)
+        before = tuple(np.require(a, np.float64, ["C", "W"]) for a in (x, uv))
+        dom = np.require(np.array(self.domain, dtype=float), np.float64, ["C", "W"])
+        return dist if self._run_compiled("surface_distance", n, before, (dom, int(iterations), dist)) else None
 
     def normals(self, uv, nudge=1e-4):
         """(n, 2) -> (n, 3) unit normals along S_u x S_v. Where that product vanishes (a collapsed row, a pole) the
