@@ -108,7 +108,8 @@ def _box(mesh, pad, cps, balance_grid=None):
             pass
         scores = [_balance(mesh, f, balance_grid) for f, _ in frames]
         k = int(np.argmin(scores))
-        if scores[k] < _balance(mesh, best, balance_grid) * (1 - 1e-6):
+        # the smallest box is one of the frames scored: its score again would cost another pass over the mesh
+        if scores[k] < scores[next(i for i, (f, _) in enumerate(frames) if f is best)] * (1 - 1e-6):
             best, kind = frames[k]
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
@@ -290,14 +291,14 @@ def check_inside(mesh, cage, tol=1e-6):
     """Raise ModelError unless every point of `mesh` (mm) lies inside the cage Volume, saying how far (mm) the mesh
     reaches outside. The cage's boundary is sampled (chords cut curved faces by a little: keep some padding).
     -> the boundary mesh used, for reuse."""
-    from .geometry import boolean, from_trimesh
+    from .geometry import boolean, from_trimesh, solid_of
 
     bnd = cage_boundary(cage)
     try:
         cm = from_trimesh(bnd, "cage boundary")
     except Exception as e:
         raise ModelError(f"model.cage: its boundary is not a closed surface ({e}); is the cage folded?") from None
-    mm = from_trimesh(mesh, "mesh model")
+    mm = solid_of(mesh, "mesh model")  # the compose stage intersects the same solid with the pieces
     out = boolean(mm, cm, "difference", "mesh outside the cage")
     scale = max(float(np.max(mesh.extents)), 1.0)
     if out.is_empty() or out.volume() <= tol * scale ** 3:
