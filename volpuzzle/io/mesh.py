@@ -489,13 +489,18 @@ def _farthest_from(points, mesh, enough, k=4, chunk=200_000):
     worst = 0.0
     for s in range(0, len(points), chunk):
         p = points[s:s + chunk]
-        _, near = tree.query(p, k=min(k, len(tri)))
-        near = near.reshape(len(p), -1)
         best = np.full(len(p), np.inf)
-        for j in range(near.shape[1]):
-            t = tri[near[:, j]]
-            best = np.minimum(best, _point_triangle_distances(p, t[:, 0], t[:, 1], t[:, 2]))
-        for i in np.flatnonzero(best > enough):
+        todo = np.arange(len(p))
+        for kk in (k, 8 * k):  # the few points over large triangles look further before the exact search
+            _, near = tree.query(p[todo], k=min(kk, len(tri)))
+            near = near.reshape(len(todo), -1)
+            for j in range(near.shape[1]):
+                t = tri[near[:, j]]
+                best[todo] = np.minimum(best[todo], _point_triangle_distances(p[todo], t[:, 0], t[:, 1], t[:, 2]))
+            todo = todo[best[todo] > enough]
+            if not len(todo):
+                break
+        for i in todo:
             cand = np.asarray(tree.query_ball_point(p[i], best[i] + reach), dtype=np.int64)
             t = tri[cand]
             q = np.broadcast_to(p[i], (len(cand), 3))
