@@ -93,6 +93,36 @@ def test_boundary_is_closed_and_outward(blob, kind):
     assert b.is_watertight and b.is_winding_consistent and b.volume > blob.volume
 
 
+@pytest.mark.parametrize("kind", ["box", "cylinder", "sphere"])
+def test_convex_cage_test_agrees_with_the_boolean(blob, kind):
+    """The shortcut for convex cages (the mesh's hull corners inside the boundary's halfspaces) says inside only where
+    the Boolean of the whole mesh does, and a mesh moved partly out of the cage is still refused with the distance."""
+    from volpuzzle.cage import _inside_convex
+    from volpuzzle.geometry import boolean, from_trimesh
+
+    vol, _ = make_cage(blob, CageSpec(type=kind, padding=1.0))
+    bnd = cage_boundary(vol)
+    assert _inside_convex(blob, bnd)
+    outside = boolean(from_trimesh(blob, "blob"), from_trimesh(bnd, "cage"), "difference", "blob outside")
+    assert outside.is_empty() or outside.volume() < 1e-9
+    moved = blob.copy()
+    moved.apply_translation([3.0, 0.0, 0.0])  # 2 mm past a 1 mm padding
+    assert not _inside_convex(moved, bnd)
+    with pytest.raises(ModelError, match=r"reaches [\d.]+ mm outside"):
+        check_inside(moved, vol)
+
+
+def test_non_convex_cage_is_left_to_the_boolean(blob):
+    from volpuzzle.cage import _inside_convex
+
+    # an L of two boxes: the blob's hull corners all lie inside the L's hull, but the blob reaches into the notch
+    a = trimesh.creation.box(extents=[60, 20, 20])
+    b = trimesh.creation.box(extents=[20, 60, 20])
+    b.apply_translation([-20, 20, 0])
+    ell = trimesh.boolean.union([a, b], engine="manifold")
+    assert not _inside_convex(blob, ell)
+
+
 def test_mesh_outside_a_nurbs_cage_is_refused_with_the_distance(blob, tmp_path):
     vol, _ = make_cage(blob, CageSpec(type="box", padding=1.0))
     path = tmp_path / "cage.json"

@@ -184,3 +184,58 @@ def test_gear_wheel_loads_closed():
     m = load_mesh(DATA / "stlmodels_gearwheel.bin.stl")
     assert m.is_watertight and m.volume > 0
     assert m.extents[2] == pytest.approx(8.0)
+
+
+# --- dense meshes: simplified within the tolerance, or kept ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def dense_sphere():
+    return trimesh.creation.icosphere(5, radius=20.0)  # 20,480 triangles
+
+
+def test_dense_mesh_is_simplified_within_the_error_both_ways(dense_sphere):
+    from volpuzzle.io.mesh import mesh_problems, simplify_dense
+
+    out, info = simplify_dense(dense_sphere, 0.05, above=5000)
+    assert info is not None and len(out.faces) == info["triangles"] <= 5000 and info["triangles_in"] == 20480
+    assert mesh_problems(out) == []
+    # measured independently (trimesh's exact closest points), both ways
+    _, d_in, _ = trimesh.proximity.closest_point(out, dense_sphere.vertices)
+    _, d_out, _ = trimesh.proximity.closest_point(dense_sphere, out.vertices)
+    assert max(d_in.max(), d_out.max()) <= info["max_deviation_mm"] + 1e-9 <= 0.05 + 1e-9
+    assert out.volume == pytest.approx(dense_sphere.volume, rel=1e-2)
+
+
+def test_dense_mesh_is_kept_when_simplifying_would_stray_or_it_is_not_dense(dense_sphere):
+    from volpuzzle.io.mesh import simplify_dense
+
+    out, info = simplify_dense(dense_sphere, 1e-6, above=5000)  # no simplification stays within a nanometre
+    assert out is dense_sphere and info is None
+    out, info = simplify_dense(dense_sphere, 0.05, above=len(dense_sphere.faces))
+    assert out is dense_sphere and info is None
+
+
+def test_far_point_bound_is_exact_where_it_exceeds_enough():
+    from volpuzzle.io.mesh import _farthest_from
+
+    # one big triangle beside many small ones: a point over the big one's corner region is far from its centre
+    big = trimesh.Trimesh([[0, 0, 0], [100, 0, 0], [0, 100, 0]], [[0, 1, 2]], process=False)
+    small = trimesh.creation.icosphere(3, radius=1.0).apply_translation([80, 2, 4])  # centres nearer p
+    both = trimesh.util.concatenate([big, small])
+    p = np.array([[95.0, 2.0, 0.5]])
+    assert _farthest_from(p, both, enough=0.1, k=1) == pytest.approx(0.5)
+
+
+def test_load_reports_a_simplified_mesh(dense_sphere, tmp_path, monkeypatch):
+    import volpuzzle.io.mesh as iomesh
+    from volpuzzle.load import load_model_for
+    from volpuzzle.spec import load_spec
+
+    dense_sphere.export(tmp_path / "ball.stl")
+    (tmp_path / "ball.yaml").write_text("name: ball\nmodel:\n  mesh: ball.stl\n  cage: {type: box, padding: 2}\n"
+                                        "grid: [2, 1, 1]\noutput:\n  tolerance: 0.2\n")
+    monkeypatch.setattr(iomesh, "DENSE_TRIANGLES", 5000)
+    model = load_model_for(load_spec(tmp_path / "ball.yaml"))
+    info = model.info["mesh_simplified"]
+    assert info["triangles_in"] == 20480 and model.info["mesh_triangles"] == info["triangles"] <= 5000
+    assert info["max_deviation_mm"] <= 0.05
+    assert len(model.mesh.faces) == info["triangles"]

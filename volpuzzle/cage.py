@@ -108,7 +108,8 @@ def _box(mesh, pad, cps, balance_grid=None):
             pass
         scores = [_balance(mesh, f, balance_grid) for f, _ in frames]
         k = int(np.argmin(scores))
-        if scores[k] < _balance(mesh, best, balance_grid) * (1 - 1e-6):
+        # the smallest box is one of the frames scored: its score again would cost another pass over the mesh
+        if scores[k] < scores[next(i for i, (f, _) in enumerate(frames) if f is best)] * (1 - 1e-6):
             best, kind = frames[k]
     axes, center, half = best
     n = (2, 2, 2) if cps is None else tuple(int(c) for c in cps)
@@ -286,18 +287,37 @@ def _farthest(surface, pts, keep=64):
     return pts[pick], np.asarray(dist)
 
 
+def _inside_convex(mesh, bnd):
+    """True when the cage's boundary `bnd` is convex (a box, a cylinder, a sphere: it encloses its own hull) and every
+    corner of the mesh's hull lies in it, so the whole mesh does. A Boolean of the whole mesh says the same at a cost
+    that grows with the mesh (seconds at 1.2M faces); False leaves the question to it."""
+    try:
+        hull = bnd.convex_hull
+    except Exception:  # a flat or folded boundary: the Boolean judges
+        return False
+    if not bnd.volume >= hull.volume * (1 - 1e-9):
+        return False
+    pts = _hull_points(mesh)
+    normals = np.asarray(hull.face_normals, float)
+    offsets = np.einsum("ij,ij->i", normals, np.asarray(hull.triangles, float)[:, 0])
+    span = max(float(np.max(hull.extents)), 1.0)
+    return bool(np.max(pts @ normals.T - offsets) <= 1e-9 * span)
+
+
 def check_inside(mesh, cage, tol=1e-6):
     """Raise ModelError unless every point of `mesh` (mm) lies inside the cage Volume, saying how far (mm) the mesh
     reaches outside. The cage's boundary is sampled (chords cut curved faces by a little: keep some padding).
     -> the boundary mesh used, for reuse."""
-    from .geometry import boolean, from_trimesh
+    from .geometry import boolean, from_trimesh, solid_of
 
     bnd = cage_boundary(cage)
     try:
         cm = from_trimesh(bnd, "cage boundary")
     except Exception as e:
         raise ModelError(f"model.cage: its boundary is not a closed surface ({e}); is the cage folded?") from None
-    mm = from_trimesh(mesh, "mesh model")
+    if _inside_convex(mesh, bnd):
+        return bnd
+    mm = solid_of(mesh, "mesh model")  # the compose stage intersects the same solid with the pieces
     out = boolean(mm, cm, "difference", "mesh outside the cage")
     scale = max(float(np.max(mesh.extents)), 1.0)
     if out.is_empty() or out.volume() <= tol * scale ** 3:
@@ -313,35 +333,49 @@ def check_inside(mesh, cage, tol=1e-6):
         "enlarge the cage or its padding, or shrink the mesh (model.size)")
 
 
-def _inside(mesh, pts, bins=128, chunk=4096):
-    """Bool (n,) for points (n, 3) inside a closed mesh: the parity of the mesh's crossings with a ray along +z from
-    each point. Triangles are binned on an xy grid so that each point meets only its bin's triangles (no rtree)."""
+def _binned(mesh, bins):
+    """The mesh's triangles (n, 3, 3) binned on a bins x bins grid over the mesh's own xy extent -> (triangles, xy
+    min (2,), xy max (2,), bin size, sorted bin keys (k,), their triangles (k,)). Made once per mesh (geometry.memo):
+    the cage's frames and the mass grid all ask of the same mesh, and at 1.2M faces this costs a second a time."""
     tri = np.asarray(mesh.triangles, float)
-    pts = np.asarray(pts, float)
-    lo = np.minimum(tri[:, :, :2].min(axis=(0, 1)), pts[:, :2].min(axis=0))
-    size = float(np.max(np.maximum(tri[:, :, :2].max(axis=(0, 1)), pts[:, :2].max(axis=0)) - lo)) or 1.0
-    # rays off the grid of nice numbers, so that none runs exactly along an edge of a symmetric mesh
-    pts = pts + np.array([0.31830989, 0.23570226, 0.0]) * 1e-7 * size
-    h = size / bins
-    tlo = np.floor((tri[:, :, :2].min(axis=1) - lo) / h).astype(np.int64)
-    thi = np.floor((tri[:, :, :2].max(axis=1) - lo) / h).astype(np.int64)
+    txy = np.ascontiguousarray(tri[:, :, :2])
+    tmin, tmax = txy.min(axis=1), txy.max(axis=1)
+    lo, hi = tmin.min(axis=0), tmax.max(axis=0)
+    h = (float(np.max(hi - lo)) or 1.0) / bins
+    tlo = np.floor((tmin - lo) / h).astype(np.int64)
+    thi = np.floor((tmax - lo) / h).astype(np.int64)
     nx, ny = thi[:, 0] - tlo[:, 0] + 1, thi[:, 1] - tlo[:, 1] + 1
     count = nx * ny
     tid = np.repeat(np.arange(len(tri)), count)
     off = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     key = (tlo[tid, 0] + off % nx[tid]) * (bins + 2) + tlo[tid, 1] + off // nx[tid]
     order = np.argsort(key, kind="stable")
-    key, tid = key[order], tid[order]
+    return tri, lo, hi, h, key[order], tid[order]
+
+
+def _inside(mesh, pts, bins=128, chunk=4096):
+    """Bool (n,) for points (n, 3) inside a closed mesh: the parity of the mesh's crossings with a ray along +z from
+    each point. Triangles are binned on an xy grid so that each point meets only its bin's triangles (no rtree)."""
+    from .geometry import memo
+
+    tri, tlo, thi, h, key, tid = memo(mesh, ("inside_bins", bins), lambda: _binned(mesh, bins))
+    pts = np.asarray(pts, float)
+    lo = np.minimum(tlo, pts[:, :2].min(axis=0))
+    size = float(np.max(np.maximum(thi, pts[:, :2].max(axis=0)) - lo)) or 1.0
+    # rays off the grid of nice numbers, so that none runs exactly along an edge of a symmetric mesh
+    pts = pts + np.array([0.31830989, 0.23570226, 0.0]) * 1e-7 * size
     out = np.zeros(len(pts), bool)
     for s in range(0, len(pts), chunk):
         p = pts[s:s + chunk]
-        pb = np.floor((p[:, :2] - lo) / h).astype(np.int64)
-        pk = pb[:, 0] * (bins + 2) + pb[:, 1]
+        pb = np.floor((p[:, :2] - tlo) / h).astype(np.int64)
+        # beside the mesh's xy extent no triangle lies over a point (its key would alias another row's bin)
+        on = np.flatnonzero(np.all((pb >= 0) & (pb <= bins), axis=1))
+        pk = pb[on, 0] * (bins + 2) + pb[on, 1]
         first, last = np.searchsorted(key, pk, "left"), np.searchsorted(key, pk, "right")
         cnt = last - first
-        pid = np.repeat(np.arange(len(p)), cnt)
+        pid = np.repeat(np.arange(len(on)), cnt)
         t = tid[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
-        a, b, c, q = tri[t, 0], tri[t, 1], tri[t, 2], p[pid]
+        a, b, c, q = tri[t, 0], tri[t, 1], tri[t, 2], p[on][pid]
         v0, v1, v2 = b - a, c - a, q - a
         den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
         with np.errstate(divide="ignore", invalid="ignore"):  # edge-on triangles (den 0) never count
@@ -349,7 +383,7 @@ def _inside(mesh, pts, bins=128, chunk=4096):
             v = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
             hit = (den != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
             hit &= a[:, 2] + u * v0[:, 2] + v * v1[:, 2] > q[:, 2]
-        out[s:s + chunk] = np.bincount(pid[hit], minlength=len(p)) % 2 == 1
+        out[s + on] = np.bincount(pid[hit], minlength=len(on)) % 2 == 1
     return out
 
 

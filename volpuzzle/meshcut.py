@@ -749,7 +749,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_c
     holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict; its "face_clearance_mm3" is the
     volume the clearance took)"""
     from .compose import Piece, compose
-    from .geometry import from_trimesh, to_trimesh
+    from .geometry import from_trimesh, solid_of, to_trimesh
 
     tiling, model = stages.tiling, stages.model
     with timer("compose", progress):
@@ -757,7 +757,7 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_c
         # Meshes often have vertices and edges exactly on a cage's mid-plane (a symmetric part centred in its cage).
         # The engine then splits the two sides by a perturbation that leaves them pinched along those edges, and
         # merging them welds a non-manifold solid. A shift far below print resolution moves them off the cuts.
-        solid = from_trimesh(model.mesh, "mesh model").translate(list(_NUDGE * float(np.max(model.mesh.extents))))
+        solid = solid_of(model.mesh, "mesh model").translate(list(_NUDGE * float(np.max(model.mesh.extents))))
         cut = intersect_pieces({p.id: from_trimesh(p.mesh, p.id) for p in bodies}, solid)
         cut, merges = merge_fragments(cut)
     cells = {p.id: tuple(p.cell) for p in bodies}
