@@ -12,7 +12,7 @@ from .sampling import WELD_MM
 
 _FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
 _LEAN = 0.25  # the least cosine between a point's mean normal and its triangles' that the set-back makes up for
-_CAP = 32.0  # half-clearances a point may slide along the outside; where it would need more it moves back instead
+_CAP = 8.0  # half-clearances a point may slide along the outside; where it would need more it moves back instead
 
 
 class ParameterMesh(NamedTuple):
@@ -92,8 +92,12 @@ def _setback(xyz, faces, slot, cut, half):
     bool. Per point (points closer than WELD_MM count as one: collapsed faces repeat a point under several ids), the
     displacement d is the smallest with d . n_f = -half on each cut face f it lies on and d . n_f = 0 on each outer
     face: a corner of two cut faces moves along both normals, a point where a cut face meets the outside slides
-    along the outside. Points inside one face near its edge then follow the edge's slide along the face, fading out
-    over _FADE half-clearances, so that none is overtaken by the moving edge (a fold)."""
+    along the outside, by half / sin(angle) up to _CAP half-clearances; beyond that (or where the constraints are
+    nearly parallel) it moves back along its cut faces only. A point then moves further where d leans from one of its
+    cut triangles, so that every cut triangle's plane is half back at each corner, and points on a collapsed face
+    (a pole) move with the faces meeting there. Points inside one face near its edge then follow the edge's slide
+    along the face, fading out over twice the slide (at least _FADE half-clearances), so that none is overtaken by the
+    moving edge (a fold) and the tip of a sharp wedge stays half a clearance from the cut."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
