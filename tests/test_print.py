@@ -380,6 +380,28 @@ def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():
     assert engrave_bed(from_trimesh(tiny, "tiny"), np.eye(4), "p0-0-0")[1] is None
 
 
+def test_a_base_cut_drops_a_speck_it_parts_from_the_piece_but_refuses_to_cut_a_piece_in_two():
+    from volpuzzle.errors import GeometryError
+    from volpuzzle.layout import Pose, base_cut
+
+    def piece(bump):
+        # a 10 mm block and a bump tied to it only by a 0.1 mm film on the bed, which the 0.2 mm flat cuts away
+        parts = [trimesh.creation.box(bounds=[[0, 0, 0], [10, 10, 10]]),
+                 trimesh.creation.box(bounds=[[9, 0, 0], [20 + bump, 0.5, 0.1]]),
+                 trimesh.creation.box(bounds=[[20, 0, 0], [20 + bump, 0.5, bump]])]
+        body = G.from_trimesh(parts[0], "block")
+        for p in parts[1:]:
+            body = body + G.from_trimesh(p, "part")
+        return G.to_trimesh(body)
+
+    pose = Pose(np.eye(4), np.array([0.0, 0.0, -1.0]), 0.2, 100.0, 0, 0, 0, 0)
+    cut, removed = base_cut(piece(0.5), pose)  # the bump above the cut: 0.5 x 0.5 x 0.3 = 0.075 mm^3
+    G.check_solid(cut, "cut")
+    assert cut.volume == pytest.approx(1000 - 0.2 * 100, rel=1e-9) and removed > 20
+    with pytest.raises(GeometryError, match=r"\(base cut\): the mesh has 2 separate bodies"):
+        base_cut(piece(3.0), pose)  # 3 x 0.5 x 2.8 mm is a part of the piece, not a speck
+
+
 def test_a_build_whose_facing_cut_faces_close_is_refused_before_it_is_written(tmp_path, monkeypatch):
     from volpuzzle import check
 
