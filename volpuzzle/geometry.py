@@ -181,6 +181,23 @@ def _row_keys(a, b):
     return inv[:len(a)], inv[len(a):]
 
 
+def kept_bodies(solid, count, volume, share):
+    """The solid with as many bodies as `count`, slivers dropped: where a cut grazes a piece, a speck thinner than
+    the cut's depth parts from it; specks of at most `share` of the piece's `volume` (0.2 mm^3 at least, less than a
+    nozzle lays in a millimetre) are dropped. -> Manifold, or None when what parts is more than a sliver."""
+    if solid.is_empty():
+        return None
+    parts = sorted(solid.decompose(), key=lambda b: -b.volume())
+    if len(parts) <= count:
+        return solid if len(parts) == count else None
+    if sum(float(b.volume()) for b in parts[count:]) > max(0.2, share * volume):
+        return None
+    kept = parts[0]
+    for b in parts[1:count]:
+        kept = kept + b
+    return kept
+
+
 def trim(m, normal, offset, what):
     """The part of Manifold m on the side `normal` points to of the plane normal . x = offset, status checked."""
     operand = check_status(m, what, "trimming by a plane (operand)")

@@ -673,7 +673,7 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
     other cells keeps, besides each member cell's shrunk part, the layer between two of its own parts that touch
     (over their contact: where both parts, moved by the clearance across it, overlap), so it stays one solid;
     should it still come apart, it is left as it was (its neighbours then keep their half of the gap)."""
-    from .geometry import boolean
+    from .geometry import boolean, kept_bodies
 
     members = {pid: [pid] for pid in cut}
     for r in merges:
@@ -700,7 +700,8 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
                     reach = (boolean(parts[x].translate(list(clearance * n)),
                                      parts[y].translate(list(-clearance * n)), "intersection", what))
                     keep = boolean(keep, reach, "union", what)
-        new = _kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()))
+        new = kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()),
+                          SLIVER_SHARE)
         if new is None:
             print(f"warning: output.face_clearance: piece {pid} would come apart with its faces set back (a thin "
                   f"neck along a cut face); it keeps its faces, its neighbours their half of the gap",
@@ -709,24 +710,6 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
         taken += float(body.volume()) - float(new.volume())
         out[pid] = new
     return out, taken
-
-
-def _kept_bodies(solid, count, volume):
-    """The set-back piece with as many bodies as before: where the mesh grazes a cut face, a sliver thinner than the
-    half clearance parts from the piece; slivers of at most SLIVER_SHARE of the piece's volume (0.2 mm^3 at least)
-    are dropped (the clearance takes them). -> Manifold, or None when what parts is more than a sliver."""
-    if solid.is_empty():
-        return None
-    parts = sorted(solid.decompose(), key=lambda b: -b.volume())
-    if len(parts) <= count:
-        return solid if len(parts) == count else None
-    extra = sum(float(b.volume()) for b in parts[count:])
-    if extra > max(0.2, SLIVER_SHARE * volume):
-        return None
-    kept = parts[0]
-    for b in parts[1:count]:
-        kept = kept + b
-    return kept
 
 
 def _contact_direction(a, b):

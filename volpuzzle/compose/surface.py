@@ -11,6 +11,8 @@ from .lattice import seen_through
 from .sampling import WELD_MM
 
 _FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
+_LEAN = 0.25  # the least cosine between a point's mean normal and its triangles' that the set-back makes up for
+_CAP = 8.0  # half-clearances a point may slide along the outside; where it would need more it moves back instead
 
 
 class ParameterMesh(NamedTuple):
@@ -90,8 +92,12 @@ def _setback(xyz, faces, slot, cut, half):
     bool. Per point (points closer than WELD_MM count as one: collapsed faces repeat a point under several ids), the
     displacement d is the smallest with d . n_f = -half on each cut face f it lies on and d . n_f = 0 on each outer
     face: a corner of two cut faces moves along both normals, a point where a cut face meets the outside slides
-    along the outside. Points inside one face near its edge then follow the edge's slide along the face, fading out
-    over _FADE half-clearances, so that none is overtaken by the moving edge (a fold)."""
+    along the outside, by half / sin(angle) up to _CAP half-clearances; beyond that (or where the constraints are
+    nearly parallel) it moves back along its cut faces only. A point then moves further where d leans from one of its
+    cut triangles, so that every cut triangle's plane is half back at each corner, and points on a collapsed face
+    (a pole) move with the faces meeting there. Points inside one face near its edge then follow the edge's slide
+    along the face, fading out over twice the slide (at least _FADE half-clearances), so that none is overtaken by the
+    moving edge (a fold) and the tip of a sharp wedge stays half a clearance from the cut."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -111,16 +117,36 @@ def _setback(xyz, faces, slot, cut, half):
     size = np.linalg.norm(normals, axis=2)
     on = size > 1e-12
     unit = np.where(on[..., None], normals / np.maximum(size, 1e-300)[..., None], 0.0)
+    _collapsed_take_neighbours(xyz, faces, slot, cluster, on, unit)
+    tri_size = np.linalg.norm(cross, axis=1)
+    real = tri_size > 1e-12 * max(float(tri_size.max(initial=0.0)), 1e-300)
     target = np.where(on & np.asarray(cut)[None, :], -float(half), 0.0)
     moving = np.flatnonzero(np.any(target != 0.0, axis=1))
     disp = np.zeros((nc, 3))
     if not len(moving):
         return disp[cluster]
-    # minimum-norm least squares, batched; nearly parallel constraints are dropped rather than amplified
-    pinv = np.linalg.pinv(unit[moving], rcond=0.05)
-    d = np.einsum("nij,nj->ni", pinv, target[moving])
+    cap = _CAP * half
+    d = _least_norm(unit[moving], target[moving])
+    # where a cut face meets the outside at a shallow angle (or across a seam or a pole, where the faces' normals are
+    # nearly parallel) sliding along the outside would take more than the cap, or the nearly parallel constraints are
+    # dropped and the cut face stays: there the point moves back along its cut faces only, and the outside dents (or
+    # bulges at a sharp wedge) by at most half the clearance, which no print shows; the gap is kept everywhere
+    cut_rows = target[moving] != 0.0
+    reached = np.all(~cut_rows | (np.einsum("nij,nj->ni", unit[moving], d) <= 0.99 * target[moving]), axis=1)
+    short = reached & (np.linalg.norm(d, axis=1) <= cap)
+    if not np.all(short):
+        redo = ~short
+        d[redo] = _least_norm(unit[moving[redo]] * cut_rows[redo, :, None], target[moving[redo]])
     length = np.linalg.norm(d, axis=1, keepdims=True)
-    disp[moving] = d * np.minimum(1.0, 4.0 * half / np.maximum(length, 1e-300))
+    disp[moving] = d * np.minimum(1.0, cap / np.maximum(length, 1e-300))
+    # a cut triangle's plane moves back by d . n_t at each corner, less than half where d leans from n_t (a curved or
+    # bumpy face, or a slide along the outside): such a corner moves further, by up to 1 / _LEAN
+    on_cut = real & np.asarray(cut)[slot]
+    worst = np.full(nc, np.inf)
+    for k in range(3):
+        c = cluster[faces[on_cut, k]]
+        np.minimum.at(worst, c, -np.einsum("ij,ij->i", disp[c], cross[on_cut]) / tri_size[on_cut] / half)
+    disp *= 1.0 / np.clip(worst, _LEAN, 1.0)[:, None]
     # where: clusters on one face only; edges: triangle edges along a line where two faces meet
     pos = np.zeros((nc, 3))
     pos[cluster] = xyz
@@ -132,7 +158,9 @@ def _setback(xyz, faces, slot, cut, half):
     single = np.flatnonzero(count == 1)
     if not len(e) or not len(single):
         return disp[cluster]
-    reach = _FADE * half
+    # a point slid by s along the outside is overtaken by none of the points behind it, and leaves the wedge's tip
+    # the half clearance from the cut, when they follow over 2 s (sliding s needs sin(angle) = half / s)
+    reach = max(_FADE * half, 2.0 * float(np.linalg.norm(disp, axis=1).max()))
     p0, p1 = pos[e[:, 0]], pos[e[:, 1]]
     seg = p1 - p0
     seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-300)
@@ -153,12 +181,50 @@ def _setback(xyz, faces, slot, cut, half):
     rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
     first = np.r_[True, rows[1:] != rows[:-1]]
     rows, cols, face_of, lam, dist = rows[first], cols[first], face_of[first], lam[first], dist[first]
-    weight = np.clip(1.0 - dist / reach, 0.0, 1.0)
     slide = (1.0 - lam)[:, None] * disp[e[cols, 0]] + lam[:, None] * disp[e[cols, 1]]
     n = unit[rows, face_of]
     slide -= np.einsum("ij,ij->i", slide, n)[:, None] * n  # only along the point's own face
+    own_reach = np.maximum(_FADE * half, 2.0 * np.linalg.norm(slide, axis=1))
+    weight = np.clip(1.0 - dist / own_reach, 0.0, 1.0)
     disp[rows] += weight[:, None] * slide
     return disp[cluster]
+
+
+def _collapsed_take_neighbours(xyz, faces, slot, cluster, on, unit):
+    """A collapsed cell face (a pole's line) has no normal, and its own points there would stay while the faces meeting
+    along the line move back: the pieces around a pole would still touch along it. Each such point takes every face
+    that a point of the line at most one triangle edge away lies on, with that point's normal (on (c, 6), unit (c, 6,
+    3) per cluster, changed in place)."""
+    from scipy.spatial import cKDTree
+
+    t = xyz[faces]
+    area = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    per_slot = np.bincount(slot, weights=area, minlength=6)
+    flat = per_slot <= 1e-9 * max(float(per_slot.max()), 1e-300)
+    if not flat.any():
+        return
+    line = np.unique(cluster[faces[flat[slot]]])
+    spacing = np.zeros(int(cluster.max()) + 1)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        length = np.linalg.norm(t[:, a] - t[:, b], axis=1)
+        np.maximum.at(spacing, cluster[faces[:, a]], length)
+        np.maximum.at(spacing, cluster[faces[:, b]], length)
+    pos = np.zeros((len(spacing), 3))
+    pos[cluster] = xyz
+    for f in np.flatnonzero(~flat):
+        have = line[on[line, f]]
+        if not len(have):
+            continue
+        dist, k = cKDTree(pos[have]).query(pos[line])
+        take = (dist <= spacing[line] + 1e-12) & ~on[line, f]
+        unit[line[take], f] = unit[have[k[take]], f]
+        on[line[take], f] = True
+
+
+def _least_norm(normals, target):
+    """Minimum-norm least-squares d (n, 3) with normals[i] @ d[i] = target[i], batched: normals (n, 6, 3) unit or
+    zero rows, target (n, 6); nearly parallel constraints are dropped rather than amplified."""
+    return np.einsum("nij,nj->ni", np.linalg.pinv(normals, rcond=0.05), target)
 
 
 def cell_surface(cell, sampling, fmap, face_clearance=0.0):

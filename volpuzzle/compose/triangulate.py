@@ -272,7 +272,7 @@ def refine_faces(works, breaks, fmap, target, tolerance):
             d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
             err[new] = d.max(axis=1)
             # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
-            # splitting mends it inside the face (next to a fixed boundary segment it would only make slivers)
+            # splitting mends it
             _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], new_face))
             ax = axes[new_face]
             n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
@@ -282,7 +282,13 @@ def refine_faces(works, breaks, fmap, target, tolerance):
             scale = np.max(np.linalg.norm(c - c[:, :1], axis=2), axis=1)
             real = (np.linalg.norm(n_t, axis=1) > 1e-9 * scale ** 2) & (norms > 0)
             cos = np.einsum("md,md->m", n_s, n_t) / np.where(norms > 0, norms, 1.0)
-            turned = real & (cos < 0.0) & np.all(interior[new], axis=1)
+            inner = interior[new]
+            # next to a fixed boundary segment only while its other edges are much longer (a fan from a far point,
+            # which turns over on a curved face): splitting then brings the point closer and ends, where splitting a
+            # short one made slivers forever (quarter torus at 0.5 mm)
+            far = np.max(np.where(inner, length, 0.0), axis=1) > 2.0 * np.max(np.where(inner, 0.0, length), axis=1)
+            fan = np.any(inner, axis=1) & ~np.all(inner, axis=1) & far
+            turned = real & (cos < 0.0) & (np.all(inner, axis=1) | fan)
             err[new[turned]] = np.maximum(err[new[turned]], 2 * target + 1.0)
         bad = err > target
         if not np.any(bad):
