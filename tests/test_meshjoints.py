@@ -47,7 +47,7 @@ def test_a_knot_in_a_box_cage_holds_together(tmp_path, grid):
     # each other in (welded). 2 x 2 x 2 pins 7 of its 8 contacts, and no plan can pin more: its contacts make one
     # loop of 8 flat cut faces, so the first split crosses two of them and pins both only when their normals (into
     # the moving part) agree, which three splits do; every direction within 30 deg of theirs (swept on a 0.5 deg by
-    # 5 deg grid) hooks into the knot after 30 to 55 mm, and the least lean that slides clear is 32.5 deg.
+    # 5 deg grid) hooks into the knot after 30 to 50 mm, and the least lean that slides clear is 32.5 deg.
     knot_tube().export(tmp_path / "knot.stl")
     spec = {"name": "knot", "model": {"mesh": "knot.stl", "cage": {"type": "box", "padding": 2}},
             "grid": grid, "output": {"tolerance": 0.2, "labels": False}}
