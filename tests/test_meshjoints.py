@@ -44,8 +44,10 @@ def seg_distance(p0, p1, q0, q1, n=64):
 @pytest.mark.parametrize("grid", [[2, 2, 1], [2, 2, 2]])
 def test_a_knot_in_a_box_cage_holds_together(tmp_path, grid):
     # 2 x 2 x 1 leaves two arcs of the knot in every cell; chained arc to arc by their widest contacts they locked
-    # each other in (welded). 2 x 2 x 2 pins 7 of its 8 contacts: the exact plan search finds no tree of splits that
-    # slide with all eight pins along their slides.
+    # each other in (welded). 2 x 2 x 2 pins 7 of its 8 contacts, and no plan can pin more: its contacts make one
+    # loop of 8 flat cut faces, so the first split crosses two of them and pins both only when their normals (into
+    # the moving part) agree, which three splits do; every direction within 30 deg of theirs (swept on a 0.5 deg by
+    # 5 deg grid) hooks into the knot after 30 to 50 mm, and the least lean that slides clear is 32.5 deg.
     knot_tube().export(tmp_path / "knot.stl")
     spec = {"name": "knot", "model": {"mesh": "knot.stl", "cage": {"type": "box", "padding": 2}},
             "grid": grid, "output": {"tolerance": 0.2, "labels": False}}
@@ -75,6 +77,28 @@ def test_a_knot_in_a_box_cage_holds_together(tmp_path, grid):
     for j in report["joints"]:
         step = next(s for s in steps if s["kind"] == "join" and [j["pin_piece"], j["hole_piece"]] in s["joints"])
         assert abs(float(np.dot(step["direction"], j["direction"]))) > 0.999
+
+
+def test_a_slide_leaning_too_far_off_a_contact_says_how_far():
+    from volpuzzle.geometry import from_trimesh
+    from volpuzzle.meshcut import PinSize, _Patch, _try, contacts
+
+    a = trimesh.creation.box(extents=[10, 20, 20])
+    a.apply_translation([-5, 0, 0])
+    b = trimesh.creation.box(extents=[10, 20, 20])
+    b.apply_translation([5, 0, 0])
+    (c,) = contacts({"a": a, "b": b})
+    patch = _Patch(c, np.random.default_rng(0))
+    crops = {"a": from_trimesh(a, "a"), "b": from_trimesh(b, "b")}
+    size = PinSize(1.5, 4.0, 0.15, 0.3)
+    lean = np.array([np.cos(np.radians(20)), np.sin(np.radians(20)), 0.0])
+    option, why = _try(patch, c, crops, size, lean, True)
+    assert why is None and abs(float(option.direction @ lean)) > 0.999
+    for pin_a in (True, False):
+        option, why = _try(patch, c, crops, size, np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0), pin_a)
+        assert option is None
+        assert why == ("the sliding direction of the split between a and b stands at least 45 deg off the contact "
+                       "wherever a pin has room, more than the 30 deg a straight pin may lean")
 
 
 def test_balanced_splits_are_the_default_for_meshes_only(tmp_path):

@@ -448,14 +448,18 @@ def _try(patch, contact, crops, size, direction, pin_a, placed=(), memo=None, ma
                       f"its edge, a {size.min_radius:g} mm pin with clearance and wall needs {need:.2f} mm")
     tests, why = 0, None
     good = []
+    upright = -1.0
     for p, room in spots:
         n = patch.normal_at(p, room)  # out of a
         cos = float(n @ d) if pin_a else float(-n @ d)
+        upright = max(upright, cos)
         if cos >= cos_max:
             good.append((p, room))
     if not good:
-        return None, (f"the sliding direction of the split between {contact.a} and {contact.b} stands more than "
-                      f"{MAX_TILT_DEG:g} deg off the contact wherever a pin has room")
+        lean = float(np.degrees(np.arccos(np.clip(upright, -1.0, 1.0))))
+        return None, (f"the sliding direction of the split between {contact.a} and {contact.b} stands at least "
+                      f"{np.floor(lean * 10) / 10:g} deg off the contact wherever a pin has room, more than the "
+                      f"{MAX_TILT_DEG:g} deg a straight pin may lean")
     trials = [(p, r, L) for r, L in _sizes(size, good[0][1]) for p, room in good[:5]
               if _reach(size, r) + wall(r) <= room + 1e-9]
     for p, r, L in trials:
