@@ -590,8 +590,9 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     piece by at most limit_frac of the smaller piece volume. Keys: assembly_order (ids, every piece once), steps (in
     assembly order: kind 'place' | 'join', piece (id or None), pieces (the block moved), into (ids of the other block
     that it joins through joints), onto (all ids of the other block), direction (3,) of travel when assembling, axis
-    ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans, seconds.
-    groups=False allows only one piece at a time (then any grid with a cycle of jointed faces is welded).
+    ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans,
+    blocks_in_workers, seconds. groups=False allows only one piece at a time (then any grid with a cycle of jointed
+    faces is welded).
     jobs > 1 (and at least _POOL_MIN_PIECES pieces): once a block has come apart, its moving part is taken apart in
     one of jobs - 1 spawned worker processes while this one takes the fixed part apart. A block's replay depends only
     on its own pieces, so the result is the same wherever it runs.
@@ -626,7 +627,8 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
             if p not in order:
                 order.append(p)
     return {"assembly_order": order, "steps": steps, "welded": bool(replay.stuck), "stuck": sorted(replay.stuck),
-            "booleans": replay.booleans, "seconds": round(time.perf_counter() - t0, 3)}
+            "booleans": replay.booleans, "blocks_in_workers": replay.remote_blocks,
+            "seconds": round(time.perf_counter() - t0, 3)}
 
 
 def _warm_worker():
@@ -655,6 +657,7 @@ class _Replay:
         self.planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
         self.stuck = []
         self.booleans_remote = 0
+        self.remote_blocks = 0
 
     @property
     def booleans(self):
@@ -733,6 +736,7 @@ class _Replay:
             self.free += 1
         self.stuck.extend(stuck)
         self.booleans_remote += booleans
+        self.remote_blocks += 1
         return steps
 
 
