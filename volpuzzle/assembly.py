@@ -136,12 +136,15 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG):
     jointed = []
     steps = []  # built as assembly (post-order), reversed at the end
 
+    of_cell = _faces_of_cells(faces)
+
     def crossing(moving, fixed):
         mv = set(moving)
-        return [n for n, f in enumerate(faces)
-                if (tuple(f.lower) in mv) != (tuple(f.upper) in mv)
-                and (tuple(f.lower) in mv or tuple(f.lower) in fixed)
-                and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
+        # only faces of the moving cells can cross: every face of the tiling per split made planning quadratic
+        return [n for n in sorted({n for c in moving for n in of_cell.get(tuple(c), ())})
+                if (tuple(faces[n].lower) in mv) != (tuple(faces[n].upper) in mv)
+                and (tuple(faces[n].lower) in mv or tuple(faces[n].lower) in fixed)
+                and (tuple(faces[n].upper) in mv or tuple(faces[n].upper) in fixed)]
 
     def choose(cands, axis, lo_cells, moving=(), prefer_seam=False):
         """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known.
@@ -242,10 +245,13 @@ def with_joints(plan, tiling, joints):
 
     keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
     numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
+    of_cell = _faces_of_cells([tiling.faces[n] for n in numbers])
     steps = []
     for s in plan.steps:
         mv, fx = set(s.moving), set(s.fixed)
-        across = tuple(n for n in numbers
+        # the jointed faces of the moving cells, ascending: all of them per step made this quadratic
+        mine = [numbers[k] for k in sorted({k for c in s.moving for k in of_cell.get(tuple(c), ())})]
+        across = tuple(n for n in mine
                        if (tuple(tiling.faces[n].lower) in mv and tuple(tiling.faces[n].upper) in fx)
                        or (tuple(tiling.faces[n].lower) in fx and tuple(tiling.faces[n].upper) in mv))
         steps.append(dataclasses.replace(s, joints=across))
@@ -297,12 +303,25 @@ def _halves(cells, a):
     return [c for c in cells if c[a] < p], [c for c in cells if c[a] >= p]
 
 
-def _split_normals(tiling, fmap, step, k=7):
-    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
+def _faces_of_cells(faces):
+    """{cell index: face numbers (ascending) that have it on either side}."""
+    out = {}
+    for n, f in enumerate(faces):
+        out.setdefault(tuple(f.lower), []).append(n)
+        if tuple(f.upper) != tuple(f.lower):
+            out.setdefault(tuple(f.upper), []).append(n)
+    return out
+
+
+def _split_normals(tiling, fmap, step, k=7, of_cell=None):
+    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving.
+    of_cell: _faces_of_cells(tiling.faces), when the caller has it."""
     mv, fx = set(step.moving), set(step.fixed)
     s = (np.arange(k) + 0.5) / k
     out = []
-    for f in tiling.faces:
+    of_cell = of_cell if of_cell is not None else _faces_of_cells(tiling.faces)
+    for n in sorted({n for c in step.moving for n in of_cell.get(tuple(c), ())}):
+        f = tiling.faces[n]
         lo, up = tuple(f.lower), tuple(f.upper)
         if not ((lo in mv and up in fx) or (up in mv and lo in fx)):
             continue
@@ -325,8 +344,9 @@ def split_directions(tiling, fmap, plan):
     min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
     leave along it without touching the other block)."""
     out = []
+    of_cell = _faces_of_cells(tiling.faces)
     for step in plan.steps:
-        ns = _split_normals(tiling, fmap, step)
+        ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
         d = ns.sum(axis=0)
         size = float(np.linalg.norm(d))
         if size < 1e-12:
