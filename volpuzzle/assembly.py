@@ -675,6 +675,10 @@ class _Replay:
         self.pool, self.free = pool, free
         self.cell_of = {pid: tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids}
         self.planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
+        self._joints_of = {}
+        for k, j in enumerate(joints):
+            for c in {tuple(j.pin_cell), tuple(j.hole_cell)}:
+                self._joints_of.setdefault(c, []).append(k)
         self.stuck = []
         self.booleans_remote = 0
         self.remote_blocks = 0
@@ -695,7 +699,9 @@ class _Replay:
                      "onto": [], "direction": None, "axis": None, "joints": []}]
         step = self.planned.get(frozenset(block))
         for moving, fixed, a, s in _candidates(block, step, self.max_tries, self.groups):
-            across = _across(joints, moving, fixed)
+            # _across of the joints of the moving cells only (in list order): all joints per block is quadratic
+            mine = sorted({k for c in moving for k in self._joints_of.get(tuple(c), ())})
+            across = _across([joints[k] for k in mine], moving, fixed)
             d, _ = _direction(across, moving, fixed)
             if d is None:
                 if across:
