@@ -571,28 +571,31 @@ def _across(joints, moving_cells, fixed_cells):
 
 
 def _candidates(block, planned, max_tries, groups=True):
-    """Splits (moving, fixed, axis, sign) of a block to try: the planned one, then every grid-plane split either way,
-    then single pieces (only single pieces when groups is False)."""
-    out = []
-    if planned is not None and (groups or len(planned.moving) == 1):
-        out.append((tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign))
-    idx = np.array(block)
-    for a in range(3 if groups else 0):
-        vals = np.unique(idx[:, a])
-        for p in vals[1:]:
-            hi = tuple(c for c in block if c[a] >= p)
-            lo = tuple(c for c in block if c[a] < p)
-            out.append((hi, lo, a, +1))
-            out.append((lo, hi, a, -1))
-    for c in block:
-        out.append(((c,), tuple(x for x in block if x != c), -1, 0))
-    seen, uniq = set(), []
-    for m, f, a, s in out:
+    """Splits (moving, fixed, axis, sign) of a block to try, at most max_tries of them: the planned one, then every
+    grid-plane split either way, then single pieces (only single pieces when groups is False). A generator: the
+    planned split mostly works, and listing every single-piece split of a large block first costs block^2."""
+    def every():
+        if planned is not None and (groups or len(planned.moving) == 1):
+            yield tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign
+        idx = np.array(block)
+        for a in range(3 if groups else 0):
+            vals = np.unique(idx[:, a])
+            for p in vals[1:]:
+                hi = tuple(c for c in block if c[a] >= p)
+                lo = tuple(c for c in block if c[a] < p)
+                yield hi, lo, a, +1
+                yield lo, hi, a, -1
+        for c in block:
+            yield (c,), tuple(x for x in block if x != c), -1, 0
+
+    seen = set()
+    for m, f, a, s in every():
+        if len(seen) >= max_tries:
+            return
         key = frozenset(m)
         if key not in seen:
             seen.add(key)
-            uniq.append((m, f, a, s))
-    return uniq[:max_tries]
+            yield m, f, a, s
 
 
 # A worker process costs ~2.5 s of CPU to start (imports) and rebuilds the solids of the pieces it is given (~5 ms
