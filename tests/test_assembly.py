@@ -326,3 +326,16 @@ def test_a_collision_halfway_along_the_sweep_is_caught():
     assert not ok and hit[:2] == ("p0-0-0", "p1-0-0") and hit[2] == pytest.approx(5.05)
     ok, _ = scene.sweep_clear(["p0-0-0"], ["p1-0-0"], np.array([0.0, 0.0, 1.0]), 1.0, 1e-4)
     assert ok
+
+
+def test_a_worker_process_takes_blocks_apart_to_the_same_steps(monkeypatch):
+    # the pool's thresholds lowered so that the 16-piece ring sends its moving halves to a spawned worker
+    _, plan, joints, pieces = _built("ring")
+    here = A.verify_disassembly(pieces, joints, plan)
+    monkeypatch.setattr(A, "_POOL_MIN_PIECES", 2)
+    monkeypatch.setattr(A, "_REMOTE_MIN_PIECES", 2)
+    pooled = A.verify_disassembly(pieces, joints, plan, jobs=2)
+    assert here["blocks_in_workers"] == 0 and pooled["blocks_in_workers"] >= 1
+    for key in ("assembly_order", "steps", "welded", "stuck", "booleans"):
+        assert pooled[key] == here[key], key
+    _assert_comes_apart(pooled, list(pieces))

@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 
 from .errors import GeometryError
 from .geometry import is_ok
@@ -153,12 +154,15 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
     jointed = []
     steps = []  # built as assembly (post-order), reversed at the end
 
+    of_cell = _faces_of_cells(faces)
+
     def crossing(moving, fixed):
         mv = set(moving)
-        return [n for n, f in enumerate(faces)
-                if (tuple(f.lower) in mv) != (tuple(f.upper) in mv)
-                and (tuple(f.lower) in mv or tuple(f.lower) in fixed)
-                and (tuple(f.upper) in mv or tuple(f.upper) in fixed)]
+        # only faces of the moving cells can cross: every face of the tiling per split made planning quadratic
+        return [n for n in sorted({n for c in moving for n in of_cell.get(tuple(c), ())})
+                if (tuple(faces[n].lower) in mv) != (tuple(faces[n].upper) in mv)
+                and (tuple(faces[n].lower) in mv or tuple(faces[n].lower) in fixed)
+                and (tuple(faces[n].upper) in mv or tuple(faces[n].upper) in fixed)]
 
     def choose(cands, axis, lo_cells, moving=(), prefer_seam=False):
         """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known.
@@ -401,10 +405,13 @@ def with_joints(plan, tiling, joints):
 
     keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
     numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
+    of_cell = _faces_of_cells([tiling.faces[n] for n in numbers])
     steps = []
     for s in plan.steps:
         mv, fx = set(s.moving), set(s.fixed)
-        across = tuple(n for n in numbers
+        # the jointed faces of the moving cells, ascending: all of them per step made this quadratic
+        mine = [numbers[k] for k in sorted({k for c in s.moving for k in of_cell.get(tuple(c), ())})]
+        across = tuple(n for n in mine
                        if (tuple(tiling.faces[n].lower) in mv and tuple(tiling.faces[n].upper) in fx)
                        or (tuple(tiling.faces[n].lower) in fx and tuple(tiling.faces[n].upper) in mv))
         steps.append(dataclasses.replace(s, joints=across))
@@ -483,11 +490,24 @@ def _face_normal_grids(tiling, fmap, numbers, k=7):
     return out
 
 
-def _split_normals(tiling, fmap, step, k=7):
-    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
+def _faces_of_cells(faces):
+    """{cell index: face numbers (ascending) that have it on either side}."""
+    out = {}
+    for n, f in enumerate(faces):
+        out.setdefault(tuple(f.lower), []).append(n)
+        if tuple(f.upper) != tuple(f.lower):
+            out.setdefault(tuple(f.upper), []).append(n)
+    return out
+
+
+def _split_normals(tiling, fmap, step, k=7, of_cell=None):
+    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving.
+    of_cell: _faces_of_cells(tiling.faces), when the caller has it."""
     mv, fx = set(step.moving), set(step.fixed)
     numbers, signs = [], []
-    for n, f in enumerate(tiling.faces):
+    of_cell = of_cell if of_cell is not None else _faces_of_cells(tiling.faces)
+    for n in sorted({n for c in step.moving for n in of_cell.get(tuple(c), ())}):
+        f = tiling.faces[n]
         lo, up = tuple(f.lower), tuple(f.upper)
         if (lo in mv and up in fx) or (up in mv and lo in fx):
             numbers.append(n)
@@ -503,8 +523,9 @@ def split_directions(tiling, fmap, plan):
     min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
     leave along it without touching the other block)."""
     out = []
+    of_cell = _faces_of_cells(tiling.faces)
     for step in plan.steps:
-        ns = _split_normals(tiling, fmap, step)
+        ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
         d = ns.sum(axis=0) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
         size = float(np.linalg.norm(d))
         if size < 1e-12:
@@ -640,6 +661,24 @@ class _Scene:
         t_hi = np.where(along, np.maximum(sa, sb), np.where(always, np.inf, -np.inf))
         return t_lo.max(axis=2).ravel(), t_hi.min(axis=2).ravel()
 
+    def _near_pairs(self, moving, fixed, ts, d, lim):
+        """(a, b) index pairs into moving and fixed, in row order, whose boxes may share more than lim (m, f) at
+        some offset t * d, t from ts.min() to ts.max(): the moving box swept over the whole travel."""
+        bm = np.array([self.box[p] for p in moving])  # (m, 2, 3)
+        bf = np.array([self.box[p] for p in fixed])
+        ends = np.stack([float(ts.min()) * d, float(ts.max()) * d])
+        lo = bm[:, 0] + ends.min(axis=0)
+        hi = bm[:, 1] + ends.max(axis=0)
+        out = []
+        step = max(1, (1 << 20) // max(len(fixed), 1))
+        for a0 in range(0, len(moving), step):  # blocks of rows keep the (m, f, 3) arrays small
+            sl = slice(a0, a0 + step)
+            common = np.clip(np.minimum(hi[sl, None], bf[None, :, 1]) - np.maximum(lo[sl, None], bf[None, :, 0]),
+                             0.0, None)
+            a, b = np.nonzero(np.prod(common, axis=2) > lim[sl])
+            out.extend(zip((a + a0).tolist(), b.tolist(), strict=True))
+        return out
+
     def samples(self, moving, fixed, d, fine):
         """Offsets (mm along unit d) at which `moving` is tested against `fixed`: every `fine` mm from 0.05 over the
         first pin lengths, then coarser until moving is past every fixed piece (none when it already is)."""
@@ -662,13 +701,17 @@ class _Scene:
         ts = self.samples(moving, fixed, d, fine)
         if len(ts) == 0:
             return True, None
-        limit = {p: limit_frac * self.vol[p] for p in self.ids}
+        lim_m = limit_frac * np.array([self.vol[p] for p in moving])
+        lim_f = limit_frac * np.array([self.vol[p] for p in fixed])
         todo = []
-        for a, pm_id in enumerate(moving):
-            for b, pf_id in enumerate(fixed):
-                lim = min(limit[pm_id], limit[pf_id])
-                for k in np.flatnonzero(self._may_meet(pm_id, pf_id, ts, d, lim)):
-                    todo.append((int(k), a, b, lim))
+        # All pairs at once: the box swept over the whole travel holds the box at every sample, so a pair whose swept
+        # box shares at most the limit with the fixed box fails _may_meet at every sample too (most pairs of a large
+        # block are far apart; one at a time in Python they cost more than the Booleans)
+        for a, b in self._near_pairs(moving, fixed, ts, d, np.minimum(lim_m[:, None], lim_f[None, :])):
+            pm_id, pf_id = moving[a], fixed[b]
+            lim = min(float(lim_m[a]), float(lim_f[b]))
+            for k in np.flatnonzero(self._may_meet(pm_id, pf_id, ts, d, lim)):
+                todo.append((int(k), a, b, lim))
         todo.sort()
         moved = {}
         for k, a, b, lim in todo:
@@ -707,31 +750,40 @@ def _across(joints, moving_cells, fixed_cells):
 
 
 def _candidates(block, planned, max_tries, groups=True):
-    """Splits (moving, fixed, axis, sign) of a block to try: the planned one, then every grid-plane split either way,
-    then single pieces (only single pieces when groups is False)."""
-    out = []
-    if planned is not None and (groups or len(planned.moving) == 1):
-        out.append((tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign))
-    idx = np.array(block)
-    for a in range(3 if groups else 0):
-        vals = np.unique(idx[:, a])
-        for p in vals[1:]:
-            hi = tuple(c for c in block if c[a] >= p)
-            lo = tuple(c for c in block if c[a] < p)
-            out.append((hi, lo, a, +1))
-            out.append((lo, hi, a, -1))
-    for c in block:
-        out.append(((c,), tuple(x for x in block if x != c), -1, 0))
-    seen, uniq = set(), []
-    for m, f, a, s in out:
+    """Splits (moving, fixed, axis, sign) of a block to try, at most max_tries of them: the planned one, then every
+    grid-plane split either way, then single pieces (only single pieces when groups is False). A generator: the
+    planned split mostly works, and listing every single-piece split of a large block first costs block^2."""
+    def every():
+        if planned is not None and (groups or len(planned.moving) == 1):
+            yield tuple(planned.moving), tuple(planned.fixed), planned.axis, planned.sign
+        idx = np.array(block)
+        for a in range(3 if groups else 0):
+            vals = np.unique(idx[:, a])
+            for p in vals[1:]:
+                hi = tuple(c for c in block if c[a] >= p)
+                lo = tuple(c for c in block if c[a] < p)
+                yield hi, lo, a, +1
+                yield lo, hi, a, -1
+        for c in block:
+            yield (c,), tuple(x for x in block if x != c), -1, 0
+
+    seen = set()
+    for m, f, a, s in every():
+        if len(seen) >= max_tries:
+            return
         key = frozenset(m)
         if key not in seen:
             seen.add(key)
-            uniq.append((m, f, a, s))
-    return uniq[:max_tries]
+            yield m, f, a, s
 
 
-def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True):
+# A worker process costs ~2.5 s of CPU to start (imports) and rebuilds the solids of the pieces it is given (~5 ms
+# each): below this many pieces the whole replay takes less than that.
+_POOL_MIN_PIECES = 96
+_REMOTE_MIN_PIECES = 16  # a smaller block is quicker taken apart here than shipped to a worker
+
+
+def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True, jobs=1):
     """Replay the plan on the real meshes -> dict.
 
     pieces: {id: trimesh mesh in mm} (or a list of compose.Piece); joints: volpuzzle.joint.Joint list (the ones built);
@@ -740,46 +792,110 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     piece by at most limit_frac of the smaller piece volume. Keys: assembly_order (ids, every piece once), steps (in
     assembly order: kind 'place' | 'join', piece (id or None), pieces (the block moved), into (ids of the other block
     that it joins through joints), onto (all ids of the other block), direction (3,) of travel when assembling, axis
-    ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans, seconds.
-    fmap is accepted for the pipeline's convenience and not needed: directions come from the joints and the meshes.
-    groups=False allows only one piece at a time (then any grid with a cycle of jointed faces is welded).
+    ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans,
+    blocks_in_workers, seconds. groups=False allows only one piece at a time (then any grid with a cycle of jointed
+    faces is welded).
+    jobs > 1 (and at least _POOL_MIN_PIECES pieces): once a block has come apart, its moving part is taken apart in
+    one of jobs - 1 spawned worker processes while this one takes the fixed part apart. A block's replay depends only
+    on its own pieces, so the result is the same wherever it runs.
     """
     t0 = time.perf_counter()
     if not isinstance(pieces, dict):
         pieces = {p.id: p.mesh for p in pieces}
-    scene = _Scene(pieces)
-    cell_of = {piece_id(c): tuple(c) for c in (tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids)}
     joints = list(joints or [])
     if fine is None:
         lengths = [float(j.length) for j in joints] or [2.0]
         fine = max(0.25, min(1.0, min(lengths) / 3.0))
-    planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
-    stuck = []
+    pool = None
+    if jobs is not None and jobs > 1 and len(pieces) >= _POOL_MIN_PIECES:
+        import concurrent.futures
+        import multiprocessing
 
-    def centroid(cells):
-        return np.mean([scene.verts[piece_id(c)].mean(axis=0) for c in cells], axis=0)
+        # spawn, never fork: manifold3d's and numba's thread pools are running in this process
+        pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1,
+                                                      mp_context=multiprocessing.get_context("spawn"))
+        for _ in range(jobs - 1):
+            pool.submit(_warm_worker)  # imports while this process sweeps the first split
+    try:
+        replay = _Replay(_Scene(pieces), joints, plan, limit_frac, fine, max_tries, groups, pool,
+                         (jobs - 1) if pool is not None else 0)
+        steps = replay.take_apart([replay.cell_of[pid] for pid in replay.scene.ids])
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+    order = []
+    for s in steps:
+        for p in s["pieces"]:
+            if p not in order:
+                order.append(p)
+    return {"assembly_order": order, "steps": steps, "welded": bool(replay.stuck), "stuck": sorted(replay.stuck),
+            "booleans": replay.booleans, "blocks_in_workers": replay.remote_blocks,
+            "seconds": round(time.perf_counter() - t0, 3)}
 
-    def take_apart(block):
+
+def _warm_worker():
+    import manifold3d  # noqa: F401 - loaded before the first block arrives
+
+    return True
+
+
+def _replay_block(meshes, joints, plan, limit_frac, fine, max_tries, groups, block):
+    """take_apart of one block in a worker process -> (steps, stuck ids, Booleans). meshes: {id: (vertices, faces)}
+    of the block's pieces only."""
+    scene = _Scene({pid: trimesh.Trimesh(v, f, process=False) for pid, (v, f) in meshes.items()})
+    replay = _Replay(scene, joints, plan, limit_frac, fine, max_tries, groups)
+    steps = replay.take_apart(block)
+    return steps, replay.stuck, replay.booleans
+
+
+class _Replay:
+    """The recursive replay of verify_disassembly over one _Scene; `free` worker slots of `pool` take moving blocks."""
+
+    def __init__(self, scene, joints, plan, limit_frac, fine, max_tries, groups, pool=None, free=0):
+        self.scene, self.joints, self.plan = scene, joints, plan
+        self.limit_frac, self.fine, self.max_tries, self.groups = limit_frac, fine, max_tries, groups
+        self.pool, self.free = pool, free
+        self.cell_of = {pid: tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids}
+        self.planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
+        self._joints_of = {}
+        for k, j in enumerate(joints):
+            for c in {tuple(j.pin_cell), tuple(j.hole_cell)}:
+                self._joints_of.setdefault(c, []).append(k)
+        self.stuck = []
+        self.booleans_remote = 0
+        self.remote_blocks = 0
+
+    @property
+    def booleans(self):
+        return self.scene.booleans + self.booleans_remote
+
+    def centroid(self, cells):
+        return np.mean([self.scene.verts[piece_id(c)].mean(axis=0) for c in cells], axis=0)
+
+    def take_apart(self, block):
         """Assembly steps for block (list of cells), or the steps of its parts that worked plus stuck pieces."""
+        scene, joints = self.scene, self.joints
         block = sorted(tuple(c) for c in block)
         if len(block) == 1:
             return [{"kind": "place", "piece": piece_id(block[0]), "pieces": [piece_id(block[0])], "into": [],
                      "onto": [], "direction": None, "axis": None, "joints": []}]
-        step = planned.get(frozenset(block))
-        for moving, fixed, a, s in _candidates(block, step, max_tries, groups):
-            across = _across(joints, moving, fixed)
+        step = self.planned.get(frozenset(block))
+        for moving, fixed, a, s in _candidates(block, step, self.max_tries, self.groups):
+            # _across of the joints of the moving cells only (in list order): all joints per block is quadratic
+            mine = sorted({k for c in moving for k in self._joints_of.get(tuple(c), ())})
+            across = _across([joints[k] for k in mine], moving, fixed)
             d, _ = _direction(across, moving, fixed)
             if d is None:
                 if across:
                     continue  # pins pointing against each other: this split cannot part
                 known = step is not None and step.slide is not None and set(moving) == set(step.moving)
-                d = np.asarray(step.slide, float) if known else centroid(moving) - centroid(fixed)
+                d = np.asarray(step.slide, float) if known else self.centroid(moving) - self.centroid(fixed)
                 n = float(np.linalg.norm(d))
                 if n < 1e-9:
                     continue
                 d = d / n
-            ok, _ = scene.sweep_clear([piece_id(c) for c in moving], [piece_id(c) for c in fixed], d, fine,
-                                      limit_frac)
+            ok, _ = scene.sweep_clear([piece_id(c) for c in moving], [piece_id(c) for c in fixed], d, self.fine,
+                                      self.limit_frac)
             if not ok:
                 continue
             join = {"kind": "join", "piece": piece_id(moving[0]) if len(moving) == 1 else None,
@@ -791,19 +907,45 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
                     "axis": (("+" if s > 0 else "-") + AXES[a]) if a >= 0 else None,
                     "joints": [[piece_id(j.pin_cell), piece_id(j.hole_cell)] for j in across]}
             # a single piece is slid on directly; a block of several is built apart first
-            return take_apart(fixed) + (take_apart(moving) if len(moving) > 1 else []) + [join]
-        stuck.extend(piece_id(c) for c in block)
+            if len(moving) == 1:
+                return self.take_apart(fixed) + [join]
+            remote = self._submit(moving) if min(len(moving), len(fixed)) >= _REMOTE_MIN_PIECES else None
+            first = self.take_apart(fixed)
+            return first + (self._result(remote, moving) if remote is not None else self.take_apart(moving)) + [join]
+        self.stuck.extend(piece_id(c) for c in block)
         return [{"kind": "place", "piece": piece_id(c), "pieces": [piece_id(c)], "into": [], "onto": [],
                  "direction": None, "axis": None, "joints": [], "stuck": True} for c in block]
 
-    steps = take_apart(list(cell_of.values()))
-    order = []
-    for s in steps:
-        for p in s["pieces"]:
-            if p not in order:
-                order.append(p)
-    return {"assembly_order": order, "steps": steps, "welded": bool(stuck), "stuck": sorted(stuck),
-            "booleans": scene.booleans, "seconds": round(time.perf_counter() - t0, 3)}
+    def _submit(self, block):
+        """A worker's future for take_apart(block), or None when no worker slot is free."""
+        if self.pool is None or self.free <= 0:
+            return None
+        import concurrent.futures
+
+        meshes = {piece_id(c): (self.scene.verts[piece_id(c)], self.scene._faces[piece_id(c)]) for c in block}
+        try:
+            fut = self.pool.submit(_replay_block, meshes, self.joints, self.plan, self.limit_frac, self.fine,
+                                   self.max_tries, self.groups, list(block))
+        except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+            return None
+        self.free -= 1
+        return fut
+
+    def _result(self, fut, block):
+        """The worker's take_apart(block); done here instead when the worker died (the same function either way)."""
+        import concurrent.futures
+
+        try:
+            steps, stuck, booleans = fut.result()
+        except concurrent.futures.process.BrokenProcessPool:
+            self.pool = None  # no more work to a broken pool
+            return self.take_apart(block)
+        finally:
+            self.free += 1
+        self.stuck.extend(stuck)
+        self.booleans_remote += booleans
+        self.remote_blocks += 1
+        return steps
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -850,14 +992,15 @@ def steps_in_words(result):
     return lines
 
 
-def replay_assembly(plan, pieces, joints, allow=(), randomized=False):
-    """Disassembly replayed on the real meshes, reversed. -> dict with assembly_order, steps, words, welded, stuck.
+def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1):
+    """Disassembly replayed on the real meshes, reversed (jobs: see verify_disassembly). -> dict with assembly_order,
+    steps, words, welded, stuck.
     A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
     import sys
 
     if plan is None:
         return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
-    res = verify_disassembly(pieces, joints, plan)
+    res = verify_disassembly(pieces, joints, plan, jobs=jobs)
     if res["welded"]:
         stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
         if "welded" not in tuple(allow):
