@@ -29,3 +29,32 @@ def test_duck_holds_together(tmp_path):
     assert not report["assembly"]["welded"] and not report["assembly"]["stuck"]
     checks = check_directory(tmp_path / "out" / "duck")
     assert checks["joint_graph"]["pieces_without_joint"] == []
+
+
+@pytest.mark.slow
+def test_the_cells_round_the_head_top_pole_keep_the_face_clearance():
+    # Eight 45-degree cells meet at the top of the head. On the skin beside a cut, both cells' points lie a fraction
+    # of a clearance from it; fading with their edge's slide they moved too little, and two neighbours came within
+    # 0.088 of the 0.15 mm (issue 10). Each such point now moves away from the cut by what it lacks.
+    from conftest import REPO
+
+    from volpuzzle import compose as C
+    from volpuzzle import geometry as G
+    from volpuzzle.pipeline import prepare
+    from volpuzzle.spec import load_spec
+
+    spec = load_spec(REPO / "specs" / "duck.yaml")
+    st = prepare(spec)
+    clearance, tol = spec.output.face_clearance, spec.output.tolerance
+    sampling = C.sample_parameters(st.tiling, st.fmap, tol)
+    cells = [(0, 3, 0), (0, 4, 0), (0, 5, 0)]
+
+    def solid(surfaces, cell):
+        return G.manifold_from_mesh(*surfaces[cell], str(cell))
+
+    plain = {c: C.cell_surface(st.tiling.cells[c], sampling, st.fmap) for c in cells}
+    apart = {c: C.cell_surface(st.tiling.cells[c], sampling, st.fmap, clearance) for c in cells}
+    for a, b in ((cells[0], cells[1]), (cells[1], cells[2])):
+        # closed cells touch; set back, they keep the clearance less the tessellation's wobble on the skin's curve
+        assert solid(plain, a).min_gap(solid(plain, b), 1.0) < 1e-6
+        assert solid(apart, a).min_gap(solid(apart, b), 1.0) >= 0.95 * clearance, (a, b)

@@ -176,6 +176,7 @@ def _setback(xyz, faces, slot, cut, half):
         return disp[cluster]
     lam = np.clip(np.einsum("ij,ij->i", pos[rows] - p0[cols], seg[cols]) / seg_len2[cols], 0.0, 1.0)
     dist = np.linalg.norm(p0[cols] + lam[:, None] * seg[cols] - pos[rows], axis=1)
+    near_edges = (rows, cols, face_of, lam)
     # the nearest edge of each point
     order = np.lexsort((dist, rows))
     rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
@@ -187,7 +188,44 @@ def _setback(xyz, faces, slot, cut, half):
     own_reach = np.maximum(_FADE * half, 2.0 * np.linalg.norm(slide, axis=1))
     weight = np.clip(1.0 - dist / own_reach, 0.0, 1.0)
     disp[rows] += weight[:, None] * slide
+    _keep_behind_cut_edges(disp, pos, unit, e, common, np.asarray(cut), near_edges, half)
     return disp[cluster]
+
+
+def _keep_behind_cut_edges(disp, pos, unit, e, common, cut, near_edges, half):
+    """A point inside one face near an edge where a cut face bounds it must end half a clearance behind that cut
+    face too, or the neighbour's point just across the cut comes within less: where cells narrow to a pole both sides'
+    points sit a fraction of a clearance apart, and fading the edge's slide leaves them short. Each such point moves
+    within its own face, away from the cut, by what it lacks (disp (c, 3) changed in place; near_edges: candidate
+    (point, edge, own face, position along the edge) rows)."""
+    rows, cols, own, lam = near_edges
+    for c in np.flatnonzero(cut):
+        sel = common[cols, c] & (own != c)
+        if not sel.any():
+            continue
+        r, k, f, t = rows[sel], cols[sel], own[sel], lam[sel]
+        q = pos[e[k, 0]] + t[:, None] * (pos[e[k, 1]] - pos[e[k, 0]])
+        nc = (1.0 - t)[:, None] * unit[e[k, 0], c] + t[:, None] * unit[e[k, 1], c]
+        nc /= np.maximum(np.linalg.norm(nc, axis=1), 1e-300)[:, None]
+        nf = unit[r, f]
+        along = nc - np.einsum("ij,ij->i", nc, nf)[:, None] * nf  # the cut's normal within the point's own face
+        size = np.linalg.norm(along, axis=1)
+        short = np.einsum("ij,ij->i", pos[r] + disp[r] - q, nc) + half  # > 0: less than half behind the cut
+        move = (short > 1e-9 * half) & (size > 0.25)  # a cut nearly parallel to the face is the face's own business
+        if not move.any():
+            continue
+        r, along, size, short = r[move], along[move], size[move], short[move]
+        step = -(short / size**2)[:, None] * along
+        # a point near several edges of the same cut takes the largest move that any of them asks
+        order = np.argsort(-np.linalg.norm(step, axis=1), kind="stable")
+        r, step = r[order], step[order]
+        first = np.unique(r, return_index=True)[1]
+        step = step[first]
+        length = np.linalg.norm(step, axis=1, keepdims=True)
+        # a lack of more than two clearances is no pole's sliver but a wedge's tip or an apex, left to the slide above
+        # (moving such points far folds their triangles)
+        keep = length[:, 0] <= 4.0 * half
+        disp[r[first][keep]] += step[keep]
 
 
 def _collapsed_take_neighbours(xyz, faces, slot, cluster, on, unit):
