@@ -193,14 +193,15 @@ def _setback(xyz, faces, slot, cut, half):
 
 
 def _keep_behind_cut_edges(disp, pos, unit, e, common, cut, near_edges, half):
-    """A point inside one face near an edge where a cut face bounds it must end half a clearance behind that cut
-    face too, or the neighbour's point just across the cut comes within less: where cells narrow to a pole both sides'
-    points sit a fraction of a clearance apart, and fading the edge's slide leaves them short. Each such point moves
-    within its own face, away from the cut, by what it lacks (disp (c, 3) changed in place; near_edges: candidate
-    (point, edge, own face, position along the edge) rows)."""
+    """A point inside one outer face near an edge where a cut face bounds it must end half a clearance behind that
+    cut face too, or the neighbour's point just across the cut comes within less: where cells narrow to a pole both
+    sides' points sit a fraction of a clearance apart, and fading the edge's slide leaves them short. Each such point
+    moves within its own face, away from the cut, by what it lacks (disp (c, 3) changed in place; near_edges:
+    candidate (point, edge, own face, position along the edge) rows). Points of a cut face are left to the slide:
+    near an apex (a sphere cage's centre) their cut's normal is no guide."""
     rows, cols, own, lam = near_edges
     for c in np.flatnonzero(cut):
-        sel = common[cols, c] & (own != c)
+        sel = common[cols, c] & ~cut[own]  # points of the outside: a cut face's own are set back already
         if not sel.any():
             continue
         r, k, f, t = rows[sel], cols[sel], own[sel], lam[sel]
