@@ -560,44 +560,29 @@ def derivatives_cubic(uvw, start, stop, bu, hu, fu, xu, bv, hv, fv, xv, bw, hw, 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
 def _basis2(br, invh, ext, p, t, N, dN, ddN, B):
-    """Element index of t (clamped) and the p+1 basis values, first and second derivatives in N, dN, ddN: the
-    Bernstein values are raised one degree at a time, and degrees p-2, p-1, p give the three (d^2/ds^2 B^p_m =
-    p (p-1) (B^{p-2}_{m-2} - 2 B^{p-2}_{m-1} + B^{p-2}_m))."""
-    lo, s = _locate(br, invh, t)
-    r1 = 1.0 - s
+    """Element index of t (clamped) and the p+1 basis values, first and second derivatives in N, dN, ddN: N and dN
+    as _basis gives them, ddN from the Bernstein values of degree p-2 (d^2/ds^2 B^p_m = p (p-1) (B^{p-2}_{m-2} -
+    2 B^{p-2}_{m-1} + B^{p-2}_m))."""
     for i in range(p + 1):
         ddN[i] = 0.0
-        dN[i] = 0.0
-    B[0] = 1.0
-    for q in range(p + 1):
-        if q > 0:
+    if p >= 2:
+        lo, s = _locate(br, invh, t)
+        r1 = 1.0 - s
+        B[0] = 1.0
+        for j in range(1, p - 1):
             saved = 0.0
-            for r in range(q):
+            for r in range(j):
                 tmp = B[r]
                 B[r] = saved + r1 * tmp
                 saved = s * tmp
-            B[q] = saved
-        if q == p - 2:
-            h2 = p * (p - 1) * invh[lo] * invh[lo]
-            for i in range(p + 1):
-                acc = 0.0
-                for m in range(p - 1):
-                    acc += B[m] * (ext[lo, i, m + 2] - 2.0 * ext[lo, i, m + 1] + ext[lo, i, m])
-                ddN[i] = h2 * acc
-        elif q == p - 1:
-            h = p * invh[lo]
-            for i in range(p + 1):
-                acc = 0.0
-                for m in range(p):
-                    acc += B[m] * (ext[lo, i, m + 1] - ext[lo, i, m])
-                dN[i] = h * acc
-        elif q == p:
-            for i in range(p + 1):
-                acc = 0.0
-                for m in range(p + 1):
-                    acc += ext[lo, i, m] * B[m]
-                N[i] = acc
-    return lo
+            B[j] = saved
+        h2 = p * (p - 1) * invh[lo] * invh[lo]
+        for i in range(p + 1):
+            acc = 0.0
+            for m in range(p - 1):
+                acc += B[m] * (ext[lo, i, m + 2] - 2.0 * ext[lo, i, m + 1] + ext[lo, i, m])
+            ddN[i] = h2 * acc
+    return _basis(br, invh, ext, p, t, N, dN, B)
 
 
 @njit(cache=True, fastmath=_FM, nogil=True)
