@@ -37,7 +37,7 @@ does; it is sized by the Jacobian at the face point, so it is right only to firs
 (the paper's Fig. 16 problem).
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -345,23 +345,14 @@ class _FaceShape:
 
 
 @dataclass(frozen=True, eq=False)
-class _FaceData:
-    """A face's sample points with its pin's direction: the _FaceShape fields, the pin direction d (k, 3), cos (k,)
-    between it and the normal, and the face's bulge sag (k,) in mm along d over a disc of the largest pin."""
+class _FaceData(_FaceShape):
+    """A face's sample points with its pin's direction: the _FaceShape fields (usable now also where the pin does not
+    run along the face), the pin direction d (k, 3), cos (k,) between it and the normal, and the face's bulge sag (k,)
+    in mm along d over a disc of the largest pin."""
 
-    n: int
-    face: object
-    fr: dict
-    uvw: dict
-    x: np.ndarray
-    nrm: np.ndarray
     d: np.ndarray
     cos: np.ndarray
-    tangents: dict
-    lens: dict
     sag: np.ndarray
-    usable: np.ndarray
-    jac: dict
 
 
 def _face_shapes(tiling, fmap, cell_lengths, reach_max):
@@ -430,8 +421,8 @@ def _directed(shape, direction=None):
     d = shape.nrm.copy() if direction is None else np.repeat(np.asarray(direction, float)[None], k, axis=0)
     cos = np.clip(np.einsum("ki,ki->k", d, shape.nrm), -1.0, 1.0)
     sag = np.max(np.abs(np.einsum("kri,ki->kr", shape.ring, d)), axis=1)
-    return _FaceData(shape.n, shape.face, shape.fr, shape.uvw, shape.x, shape.nrm, d, cos, shape.tangents, shape.lens,
-                     sag, shape.usable & (cos > 1e-6), shape.jac)
+    base = {f.name: getattr(shape, f.name) for f in fields(_FaceShape)}
+    return _FaceData(**(base | {"usable": shape.usable & (cos > 1e-6)}), d=d, cos=cos, sag=sag)
 
 
 def _base(fd, s):
