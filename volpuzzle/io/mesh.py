@@ -454,25 +454,11 @@ DENSE_TRIANGLES = 400_000  # above this a mesh is simplified within the output t
 
 
 def _point_triangle_distances(p, a, b, c):
-    """Distances (n,) from points p (n, 3) to triangles (a, b, c), each (n, 3): the closest point by the triangle's
-    Voronoi regions (vertex, edge, face; Ericson, Real-Time Collision Detection, 5.1.5)."""
-    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-
-    def dot(x, y):
-        return np.einsum("ij,ij->i", x, y)
-
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    """Distances (n,) from points p (n, 3) to triangles (a, b, c), each (n, 3), through trimesh's closest point on
+    each triangle."""
+    ap, bp, cp = p - a, p - b, p - c
     with np.errstate(divide="ignore", invalid="ignore"):
-        on_ab = a + (d1 / (d1 - d3))[:, None] * ab
-        on_ac = a + (d2 / (d2 - d6))[:, None] * ac
-        on_bc = b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b)
-        den = va + vb + vc
-        inside = a + (vb / den)[:, None] * ab + (vc / den)[:, None] * ac
-    conds = [(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-             (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0), (va <= 0) & (d4 >= d3) & (d5 >= d6)]
-    near = np.select([k[:, None] for k in conds], [a, b, on_ab, c, on_ac, on_bc], inside)
-    d = np.linalg.norm(p - near, axis=1)
+        d = np.linalg.norm(p - trimesh.triangles.closest_point(np.stack([a, b, c], axis=1), p), axis=1)
     # a collapsed triangle has no face region: its nearest corner bounds the distance from above
     corner = np.minimum(np.minimum(np.linalg.norm(ap, axis=1), np.linalg.norm(bp, axis=1)), np.linalg.norm(cp, axis=1))
     return np.where(np.isfinite(d), np.minimum(d, corner), corner)
