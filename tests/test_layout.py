@@ -222,9 +222,9 @@ def test_step_pictures_show_the_pieces_in_place_grey_and_the_block_added_in_its_
 
 
 def test_hull_points_are_trimeshs_hull_vertices():
-    # layout packs on the hull's extreme points taken straight from qhull; they must be the very points (and order)
-    # of trimesh's convex_hull, or plates would move
-    from volpuzzle.layout import _hull_points
+    # layout packs (and cages are fitted) on the hull's extreme points taken straight from qhull; they must be the
+    # very points (and order) of trimesh's convex_hull, or plates and cages would move
+    from volpuzzle.geometry import hull_points_of
 
     rng = np.random.default_rng(7)
     meshes = [trimesh.creation.icosphere(subdivisions=3), trimesh.creation.box([10, 30, 50]),
@@ -234,7 +234,7 @@ def test_hull_points_are_trimeshs_hull_vertices():
     meshes.append(bumpy)
     for k, mesh in enumerate(meshes):
         mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-        fast = _hull_points(mesh)
+        fast = hull_points_of(mesh)
         if k == len(meshes) - 1:
             assert len(fast) < len(mesh.vertices)  # the test reaches points that are not on the hull
         np.testing.assert_array_equal(fast, trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)

@@ -15,6 +15,7 @@ import numpy as np
 import trimesh
 
 from .errors import ModelError
+from .geometry import hull_points_of
 from .grid import frame_from_direction
 from .spline.knots import greville, uniform_knots
 from .spline.volume import Volume
@@ -31,13 +32,6 @@ _CIRCLE_KNOTS = np.array([0, 0, 0, .25, .25, .5, .5, .75, .75, 1, 1, 1])
 _HALF_RZ = np.array([[0, 1], [1, 1], [1, 0], [1, -1], [0, -1]], float)
 _HALF_W = np.array([1, _S, 1, _S, 1])
 _HALF_KNOTS = np.array([0, 0, 0, .5, .5, 1, 1, 1])
-
-
-def _hull_points(mesh):
-    try:
-        return np.asarray(mesh.convex_hull.vertices, float)
-    except Exception:  # a flat or tiny mesh: all its vertices will do
-        return np.asarray(mesh.vertices, float)
 
 
 def _right_handed(axes):
@@ -87,7 +81,7 @@ def _box(mesh, pad, cps, balance_grid=None):
     """balance_grid: the grid of balanced splits, when they are asked for: the box's frame is then the one (axis-
     aligned, smallest box, principal axes of inertia) whose pieces come out the most even, not the smallest box
     (the bunny's smallest box leaves its octants 3.3x apart, its axes of inertia 1.3x)."""
-    pts = _hull_points(mesh)
+    pts = hull_points_of(mesh)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     aabb = (np.eye(3), (lo + hi) / 2, (hi - lo) / 2 + pad)
     best, kind = aabb, "axis-aligned"
@@ -131,7 +125,7 @@ def _min_circle(points2d):
 
 
 def _cylinder(mesh, pad):
-    pts = _hull_points(mesh)
+    pts = hull_points_of(mesh)
     cands = [np.eye(3)[k] for k in range(3)]
     try:
         cands += list(np.asarray(mesh.principal_inertia_vectors, float))
@@ -164,7 +158,7 @@ def _cylinder(mesh, pad):
 
 
 def _sphere(mesh, pad):
-    pts = _hull_points(mesh)
+    pts = hull_points_of(mesh)
     c, r = trimesh.nsphere.minimum_nsphere(pts)
     c, R = np.asarray(c, float), float(r) + pad
     radii = np.array([0.0, R])
@@ -297,7 +291,7 @@ def _inside_convex(mesh, bnd):
         return False
     if not bnd.volume >= hull.volume * (1 - 1e-9):
         return False
-    pts = _hull_points(mesh)
+    pts = hull_points_of(mesh)
     normals = np.asarray(hull.face_normals, float)
     offsets = np.einsum("ij,ij->i", normals, np.asarray(hull.triangles, float)[:, 0])
     span = max(float(np.max(hull.extents)), 1.0)

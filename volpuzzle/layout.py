@@ -20,6 +20,7 @@ from scipy.spatial import ConvexHull
 from trimesh.path import packing
 
 from .errors import SpecError
+from .geometry import hull_points_of
 
 # Faces within this angle of the plate count as resting on it; faces steeper than 45 degrees down overhang.
 FLAT_COS = np.cos(np.radians(3.0))
@@ -151,20 +152,6 @@ def _choose(mesh, pin_directions=(), hole_openings=()):
             int(holes_down[best])), hull
 
 
-def _hull_points(mesh):
-    """The vertices (k, 3) of trimesh's convex_hull of the mesh, in its order (qhull's, same options, by index), without
-    building the hull's mesh, which costs a third more than qhull itself and is not needed where only the extreme
-    points are."""
-    from scipy.spatial import QhullError
-
-    points = mesh.vertices.view(np.ndarray)
-    try:
-        hull = ConvexHull(points, qhull_options="QbB Pp Qt")
-    except QhullError:  # trimesh retries such a (flat, degenerate) point set its own way
-        return mesh.convex_hull.vertices.view(np.ndarray)
-    return points[np.sort(hull.vertices)]
-
-
 def _orient(mesh, pin_directions=(), hole_openings=(), down=None, hull_points=None):
     """print_orientation's rotation, and the piece's convex-hull vertices (all its extreme points). down: the
     assembled direction to put on the bed, when already chosen; hull_points: those vertices, when known."""
@@ -172,7 +159,7 @@ def _orient(mesh, pin_directions=(), hole_openings=(), down=None, hull_points=No
         (down, *_), hull = _choose(mesh, pin_directions, hole_openings)
         hull_points = hull.vertices.view(np.ndarray)
     elif hull_points is None:
-        hull_points = _hull_points(mesh)
+        hull_points = hull_points_of(mesh)
     rot = trimesh.geometry.align_vectors(np.asarray(down, float), [0.0, 0.0, -1.0])
     # Then turn about z so that the footprint's bounding rectangle is smallest.
     pts = hull_points @ rot[:3, :3].T
