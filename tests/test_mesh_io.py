@@ -225,6 +225,31 @@ def test_far_point_bound_is_exact_where_it_exceeds_enough():
     assert _farthest_from(p, both, enough=0.1, k=1) == pytest.approx(0.5)
 
 
+def test_point_triangle_kernel_matches_trimesh_and_handles_collapsed_triangles():
+    from volpuzzle.io._mesh_distance import nearest_distances
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    tri = rng.normal(size=(n, 3, 3))
+    tri[:400, 1] = tri[:400, 0]  # a == b: the segment ac
+    tri[400:800] = tri[400:800, :1]  # a point
+    tri[800:1200, 2] = (tri[800:1200, 0] + tri[800:1200, 1]) / 2  # collinear: the segment ab
+    p = rng.normal(size=(n, 3)) * 2
+    got = nearest_distances(p, tri, np.arange(n)[:, None])
+    # reference: dense samples of each collapsed triangle's segment, trimesh's closest point on the rest
+    ref = np.linalg.norm(p - trimesh.triangles.closest_point(tri, p), axis=1)
+    s = np.linspace(0.0, 1.0, 20001)[None, :, None]
+    for lo, hi, a, b in ((0, 400, 0, 2), (800, 1200, 0, 1)):
+        seg = tri[lo:hi, a, None] + s * (tri[lo:hi, b, None] - tri[lo:hi, a, None])
+        ref[lo:hi] = np.linalg.norm(seg - p[lo:hi, None], axis=2).min(axis=1)
+    ref[400:800] = np.linalg.norm(p[400:800] - tri[400:800, 0], axis=1)
+    assert np.all(got <= ref + 1e-9) and np.allclose(got, ref, atol=1e-6)
+    # the minimum over several candidates per point, starting from a given bound
+    near = rng.integers(0, n, size=(n, 5))
+    want = np.minimum(0.5, np.min([nearest_distances(p, tri, near[:, [j]]) for j in range(5)], axis=0))
+    assert np.array_equal(nearest_distances(p, tri, near, np.full(n, 0.5)), want)
+
+
 def test_load_reports_a_simplified_mesh(dense_sphere, tmp_path, monkeypatch):
     import volpuzzle.io.mesh as iomesh
     from volpuzzle.load import load_model_for

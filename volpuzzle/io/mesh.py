@@ -453,17 +453,6 @@ def load_mesh(path, unit_scale=1.0, size=None, repair=False):
 DENSE_TRIANGLES = 400_000  # above this a mesh is simplified within the output tolerance (simplify_dense)
 
 
-def _point_triangle_distances(p, a, b, c):
-    """Distances (n,) from points p (n, 3) to triangles (a, b, c), each (n, 3), through trimesh's closest point on
-    each triangle."""
-    ap, bp, cp = p - a, p - b, p - c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.linalg.norm(p - trimesh.triangles.closest_point(np.stack([a, b, c], axis=1), p), axis=1)
-    # a collapsed triangle has no face region: its nearest corner bounds the distance from above
-    corner = np.minimum(np.minimum(np.linalg.norm(ap, axis=1), np.linalg.norm(bp, axis=1)), np.linalg.norm(cp, axis=1))
-    return np.where(np.isfinite(d), np.minimum(d, corner), corner)
-
-
 def _farthest_from(points, mesh, enough, k=4, chunk=200_000):
     """The largest distance from points (n, 3) to the surface of mesh, exact where it matters: each point's distance
     to the nearest of the k triangles whose centres lie nearest it bounds it from above; the few points whose bound
@@ -471,29 +460,29 @@ def _farthest_from(points, mesh, enough, k=4, chunk=200_000):
     triangle's reach from its centre (any nearer triangle must be one of them)."""
     from scipy.spatial import cKDTree
 
-    tri = np.asarray(mesh.triangles, float)
+    from ._mesh_distance import nearest_distances, nearest_of
+
+    tri = np.ascontiguousarray(mesh.triangles, dtype=np.float64)
     centre = tri.mean(axis=1)
     reach = float(np.max(np.linalg.norm(tri - centre[:, None], axis=2)))
     tree = cKDTree(centre)
     worst = 0.0
     for s in range(0, len(points), chunk):
-        p = points[s:s + chunk]
+        p = np.ascontiguousarray(points[s:s + chunk], dtype=np.float64)
         best = np.full(len(p), np.inf)
         todo = np.arange(len(p))
         for kk in (k, 8 * k):  # the few points over large triangles look further before the exact search
             _, near = tree.query(p[todo], k=min(kk, len(tri)))
-            near = near.reshape(len(todo), -1)
-            for j in range(near.shape[1]):
-                t = tri[near[:, j]]
-                best[todo] = np.minimum(best[todo], _point_triangle_distances(p[todo], t[:, 0], t[:, 1], t[:, 2]))
+            best[todo] = nearest_distances(p[todo], tri, near.reshape(len(todo), -1), best[todo])
             todo = todo[best[todo] > enough]
             if not len(todo):
                 break
-        for i in todo:
-            cand = np.asarray(tree.query_ball_point(p[i], best[i] + reach), dtype=np.int64)
-            t = tri[cand]
-            q = np.broadcast_to(p[i], (len(cand), 3))
-            best[i] = min(best[i], float(_point_triangle_distances(q, t[:, 0], t[:, 1], t[:, 2]).min()))
+        if len(todo):
+            balls = tree.query_ball_point(p[todo], best[todo] + reach)
+            ptr = np.zeros(len(todo) + 1, np.int64)
+            ptr[1:] = np.cumsum([len(b) for b in balls])
+            cand = np.fromiter((j for b in balls for j in b), np.int64, count=int(ptr[-1]))
+            best[todo] = nearest_of(p[todo], tri, ptr, cand, best[todo].copy())
         worst = max(worst, float(best.max()))
     return worst
 
