@@ -233,7 +233,7 @@ def test_point_triangle_kernel_matches_trimesh_and_handles_collapsed_triangles()
     tri = rng.normal(size=(n, 3, 3))
     tri[:400, 1] = tri[:400, 0]  # a == b: the segment ac
     tri[400:800] = tri[400:800, :1]  # a point
-    tri[800:1200, 2] = (tri[800:1200, 0] + tri[800:1200, 1]) / 2  # collinear: the segment ab
+    tri[800:1200, 2] = tri[800:1200, 0] + (tri[800:1200, 1] - tri[800:1200, 0]) / 3  # collinear: the segment ab
     p = rng.normal(size=(n, 3)) * 2
     got = nearest_distances(p, tri, np.arange(n)[:, None])
     # reference: dense samples of each collapsed triangle's segment, trimesh's closest point on the rest
