@@ -287,11 +287,17 @@ def mesh_problems(mesh):
         return ["zero faces: the file holds no triangles"]
     out = []
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
-    und = np.sort(directed, axis=1)
-    base = int(und.max()) + 1
-    keys = und[:, 0] * base + und[:, 1]
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
+    lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
+    base = int(hi.max()) + 1
+    keys = lo * base + hi
+    shift = len(keys).bit_length()
+    if 2 * base.bit_length() + shift <= 62:
+        # each key with its index in the low bits: a plain sort of int64 is ~5x faster than an argsort
+        packed = np.sort((keys << shift) | np.arange(len(keys), dtype=np.int64))
+        order, sk = packed & ((1 << shift) - 1), packed >> shift
+    else:
+        order = np.argsort(keys)  # the order within a run of equal keys does not matter below
+        sk = keys[order]
     starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
     counts = np.diff(np.r_[starts, len(sk)])
     uniq = np.stack([sk[starts] // base, sk[starts] % base], axis=1)
@@ -300,10 +306,20 @@ def mesh_problems(mesh):
         out.append(f"{len(open_e)} open (boundary) edges: the surface has holes, near {_near(mesh, open_e)}")
     if len(nonman):
         out.append(f"{len(nonman)} non-manifold edges shared by more than two triangles, near {_near(mesh, nonman)}")
-    # two triangles that agree in orientation run along their shared edge the same way
-    duniq, dcount = _unique_rows(directed)
-    incons = duniq[dcount > 1]
+    # two triangles that agree in orientation run along their shared edge the same way: a directed edge used twice.
+    # Read from the runs above (a pair of an edge's two uses starting at the same vertex) rather than a second sort;
+    # the rare runs of more than two uses are counted on their own
+    two = starts[counts == 2]
+    first, second = order[two], order[two + 1]
+    same = two[directed[first, 0] == directed[second, 0]]
+    incons = directed[order[same]]
+    many = np.flatnonzero(counts > 2)
+    if len(many):
+        rows = order[np.concatenate([np.arange(starts[i], starts[i] + counts[i]) for i in many])]
+        duniq, dcount = _unique_rows(directed[rows])
+        incons = np.concatenate([incons, duniq[dcount > 1]])
     if len(incons):
+        incons = incons[np.argsort(incons[:, 0] * base + incons[:, 1])]  # the message names the least edge
         out.append(f"{len(incons)} edges where neighbouring triangles are inconsistently oriented (flipped faces), "
                    f"near {_near(mesh, incons)}")
     # bodies: faces joined across the edges that exactly two triangles share (as trimesh's face_adjacency), from the
@@ -311,8 +327,7 @@ def mesh_problems(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    two = starts[counts == 2]
-    pairs = order[np.stack([two, two + 1], axis=1)] % len(faces)
+    pairs = np.stack([first, second], axis=1) % len(faces)
     graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(faces),) * 2)
     nb, labels = connected_components(graph, directed=False)
     if nb > 1:
