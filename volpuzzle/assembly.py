@@ -311,12 +311,10 @@ class _PlanSearch:
                     sign = 1.0 if up in mv else -1.0
                     across.append((n, sign))
                     normals.append(sign * self._normals[n])
-        total = np.concatenate(normals).sum(axis=0) if normals else np.zeros(3)
-        size = float(np.linalg.norm(total))
-        if size < 1e-12:
+        d = leave_direction(np.concatenate(normals)) if normals else None
+        if d is None:
             self._lost[key] = (len(across), None)
             return self._lost[key]
-        d = total / size
 
         held = [self.holds(n, sign * d) for n, sign in across]
         out = (held.count(False), d)
@@ -378,6 +376,37 @@ class _PlanSearch:
     def slide(self, moving, fixed):
         """The direction (3,) from fixed to moving that the split's pins point along, or None."""
         return self.lost(moving, fixed)[1]
+
+
+def leave_direction(normals):
+    """The unit direction (3,) in which a block leaves a split whose surface has the area-weighted normals (m, 3)
+    (from fixed to moving), or None when they cancel out: their mean, which bumps cannot tilt the way they tilt the
+    normal at one point, unless some of the surface then faces away from it (min dot <= 0, so the block would drag
+    through the other one). Then the direction that keeps the whole surface furthest ahead (the largest least
+    cosine to its normals) instead: a half pipe bent along its length, halved through its bend, has a mean normal
+    that leans toward the outside of the bend (more area there) and drives the inner half through the outer one's
+    rims, while straight out of the trough (its plane of symmetry) every normal is ahead."""
+    normals = np.asarray(normals, float)
+    total = normals.sum(axis=0)
+    size = float(np.linalg.norm(total))
+    if size < 1e-12:
+        return None
+    d = total / size
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
+    unit = unit[np.linalg.norm(normals, axis=1) > 1e-12]
+    if float((unit @ d).min()) > 0.0:
+        return d
+    # the largest least cosine: a coarse search over the sphere, then caps ever smaller round the best (the least
+    # cosine is concave over the cap where it is positive, so the refinement converges to its one maximum)
+    cands = np.concatenate([_directions(2048), d[None]])
+    best = cands[int(np.argmax((cands @ unit.T).min(axis=1)))]
+    angle = 4.0
+    for _ in range(12):
+        cands = np.concatenate([_cap(best, angle), best[None]])
+        best = cands[int(np.argmax((cands @ unit.T).min(axis=1)))]
+        best = best / np.linalg.norm(best)
+        angle *= 0.5
+    return best if float((unit @ best).min()) > float((unit @ d).min()) else d
 
 
 def _cap(d, angle_deg, count=48):
@@ -518,20 +547,17 @@ def _split_normals(tiling, fmap, step, k=7, of_cell=None):
 
 def split_directions(tiling, fmap, plan):
     """Per step, the mm direction in which its moving block should leave: the step's slide when the plan search chose
-    one, else the area-weighted mean normal of the whole split surface, which bumps cannot tilt the way they tilt the
-    normal at one point -> list of (direction (3,),
-    min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
+    one, else leave_direction of the whole split surface -> list of (direction (3,), min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
     leave along it without touching the other block)."""
     out = []
     of_cell = _faces_of_cells(tiling.faces)
     for step in plan.steps:
         ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
-        d = ns.sum(axis=0) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
-        size = float(np.linalg.norm(d))
-        if size < 1e-12:
+        d = leave_direction(ns) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
+        if d is None or float(np.linalg.norm(d)) < 1e-12:
             out.append((np.zeros(3), -1.0))
             continue
-        d = d / size
+        d = d / float(np.linalg.norm(d))
         unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
         out.append((d, float((unit @ d).min())))
     return out
