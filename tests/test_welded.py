@@ -1,0 +1,99 @@
+"""Puzzles that used to be welded: a half pipe bent along its length slides straight out of its trough (not along its
+area-weighted mean normal, which leans toward the outside of the bend), and a coil that no straight slide can take
+apart is refused with the grid at which no piece turns more than a half turn, which builds."""
+
+import numpy as np
+import pytest
+from conftest import REPO
+from helpers_build import write_spec
+
+from volpuzzle import assembly as A
+from volpuzzle.errors import GeometryError
+from volpuzzle.io import load_model
+from volpuzzle.mapping import Map
+from volpuzzle.pipeline import build
+from volpuzzle.tile import tile
+
+DATA = REPO / "tests" / "data" / "volumes"
+
+
+def _half_torus_normals(bend=np.pi / 2, big=3.0, n=24):
+    """Area-weighted normals (n * n, 3) of the inner face of a bent half pipe, halved through its bend's plane: a
+    torus of major radius big and minor radius 1, angle theta over [0, pi] (y >= 0), bend angle over [0, bend]."""
+    th, ph = np.meshgrid((np.arange(n) + 0.5) / n * np.pi, (np.arange(n) + 0.5) / n * bend, indexing="ij")
+    radial = np.stack([np.cos(th) * np.cos(ph), np.sin(th), np.cos(th) * np.sin(ph)], axis=-1)
+    area = (big + np.cos(th))[..., None]  # more surface on the outside of the bend
+    return (radial * area).reshape(-1, 3)
+
+
+def test_a_bent_half_pipe_leaves_straight_out_of_its_trough():
+    ns = _half_torus_normals()
+    unit = ns / np.linalg.norm(ns, axis=1)[:, None]
+    mean = ns.sum(axis=0) / np.linalg.norm(ns.sum(axis=0))
+    assert (unit @ mean).min() < 0  # the mean leans toward the bend's outside and drags a rim through the other half
+    d = A.leave_direction(ns)
+    assert abs(np.linalg.norm(d) - 1) < 1e-9 and (unit @ d).min() > 0
+    assert d[1] > 0.999  # straight out of the trough, along its plane of symmetry
+
+
+def test_a_split_whose_surface_stays_ahead_keeps_its_mean_normal():
+    ns = _half_torus_normals()
+    ns = ns[(ns / np.linalg.norm(ns, axis=1)[:, None])[:, 1] > 0.5]  # a shallow dish
+    mean = ns.sum(axis=0) / np.linalg.norm(ns.sum(axis=0))
+    assert np.array_equal(A.leave_direction(ns), mean)
+    assert A.leave_direction(np.zeros((4, 3))) is None
+
+
+def _spring(grid):
+    vol = load_model(DATA / "gismo_spring.xml")
+    return tile(vol, grid), Map(vol, None, -1)
+
+
+def test_a_coil_is_cut_until_no_piece_turns_more_than_a_half_turn():
+    # the G+Smo spring: three turns along u; 2 x 2 x 2 pieces of it span a turn and a half each
+    assert A.bend_grid(*_spring((2, 2, 2))) == (6, 2, 2)
+    assert A.bend_grid(*_spring((6, 2, 2))) is None
+    assert A.bend_grid(*_spring((8, 1, 2))) is None
+
+
+def test_a_welded_coil_names_the_grid_that_builds(monkeypatch):
+    t, fmap = _spring((2, 2, 2))
+    stuck = [A.piece_id(c) for c in sorted(t.cells)]
+    monkeypatch.setattr(A, "verify_disassembly", lambda *_a, **_k: {
+        "assembly_order": stuck, "steps": [], "welded": True, "stuck": stuck, "booleans": 0, "seconds": 0})
+    with pytest.raises(GeometryError) as e:
+        A.replay_assembly(A.plan_assembly(t), [], [], tiling=t, fmap=fmap)
+    msg = str(e.value)
+    assert msg.startswith("assembly: the puzzle is welded: p0-0-0, p0-0-1, p0-1-0, p0-1-1, p1-0-0, p1-0-1 and 2 more")
+    assert "try grid [6, 2, 2], whose cells turn at most 180 deg along u" in msg and "\n" not in msg
+    assert "randomize" not in msg  # not randomized: no seed or amplitude to change
+
+
+def _gismo_spec(tmp_path, name, grid):
+    return write_spec(tmp_path, {"name": name, "model": {"nurbs": str(DATA / f"gismo_{name}.xml"), "size": 150},
+                                 "grid": grid, "output": {"tolerance": 0.3, "labels": False,
+                                                          "directory": str(tmp_path / "out" / name)}})
+
+
+def _assert_built_and_held(report):
+    assert report["checks"]["passed"] and not report["assembly"]["welded"] and report["assembly"]["stuck"] == []
+    contacts = report["contacts"]
+    room = [c for c in contacts if c["room"]]
+    assert room and sum(c["pinned"] for c in room) >= 0.9 * len(room)
+    with_joint = {p for j in report["joints"] for p in (j["pin_piece"], j["hole_piece"])}
+    assert with_joint == {p["id"] for p in report["pieces"]}
+
+
+@pytest.mark.slow
+def test_the_bent_pipe_2x2x2_builds_and_comes_apart(tmp_path):
+    # was welded: the elbow's inner half pipe was pushed 19.5 deg toward the bend's outside, through the outer rims
+    report = build(_gismo_spec(tmp_path, "bent_pipe", [2, 2, 2]), progress=None)
+    _assert_built_and_held(report)
+    assert len(report["pieces"]) == 8
+
+
+@pytest.mark.slow
+def test_the_spring_at_the_grid_its_refusal_names_builds(tmp_path):
+    report = build(_gismo_spec(tmp_path, "spring", [6, 2, 2]), progress=None)
+    _assert_built_and_held(report)
+    assert len(report["pieces"]) == 24
