@@ -97,3 +97,27 @@ def test_the_spring_at_the_grid_its_refusal_names_builds(tmp_path):
     report = build(_gismo_spec(tmp_path, "spring", [6, 2, 2]), progress=None)
     _assert_built_and_held(report)
     assert len(report["pieces"]) == 24
+
+
+def test_cells_too_shallow_for_the_smallest_pin_name_a_shorter_pin_and_a_coarser_grid_that_fits():
+    from test_joint import _box, _map, _spec, _tiling
+
+    from volpuzzle import joint as J
+    from volpuzzle.errors import SpecError
+
+    vol = _box(24.0, 30.0, 30.0)  # 8 cells 3 mm deep: a 3 mm pin's hole and its wall need 4.1 mm
+    t, spec = _tiling(vol, (8, 1, 1)), _spec()
+    with pytest.raises(SpecError) as e:
+        J.place_planned_joints(t, _map(vol), spec)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("joints: piece p0-0-0 gets no joint")
+    assert "holds a pin of radius at most 0.9 mm and 1 mm long" in msg
+    assert "expected joints.min_radius at most 0.9 and joints.min_length at most 1 there" in msg
+    assert "grid [5, 1, 1] or coarser (cells with room for a pin of 1 mm by 3 mm)" in msg
+    # both are true: the shorter pin fits at 8 cells, the smallest pin at the grid named
+    shorter = _spec(min_radius=0.9, min_length=1.0)
+    layout, _ = J.place_planned_joints(t, _map(vol), shorter)
+    assert len(layout.joints) == len(t.faces)
+    coarse = _tiling(vol, (5, 1, 1))
+    layout, _ = J.place_planned_joints(coarse, _map(vol), spec)
+    assert len(layout.joints) == len(coarse.faces) and all(j.length >= 3.0 for j in layout.joints)
