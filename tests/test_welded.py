@@ -113,11 +113,11 @@ def test_cells_too_shallow_for_the_smallest_pin_name_a_shorter_pin_and_a_coarser
     assert "\n" not in msg and msg.startswith("joints: piece p0-0-0 gets no joint")
     assert "holds a pin of radius at most 0.9 mm and 1 mm long" in msg
     assert "expected joints.min_radius at most 0.9 and joints.min_length at most 1 there" in msg
-    assert "grid [5, 1, 1] or coarser (cells with room for a pin of 1 mm by 3 mm)" in msg
+    assert "grid [4, 1, 1] or coarser (cells with room for a pin of 1 mm by 3 mm)" in msg
     # both are true: the shorter pin fits at 8 cells, the smallest pin at the grid named
     shorter = _spec(min_radius=0.9, min_length=1.0)
     layout, _ = J.place_planned_joints(t, _map(vol), shorter)
     assert len(layout.joints) == len(t.faces)
-    coarse = _tiling(vol, (5, 1, 1))
+    coarse = _tiling(vol, (4, 1, 1))
     layout, _ = J.place_planned_joints(coarse, _map(vol), spec)
     assert len(layout.joints) == len(coarse.faces) and all(j.length >= 3.0 for j in layout.joints)

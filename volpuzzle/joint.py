@@ -944,11 +944,13 @@ def _fit_in(reason):
 
 def coarser_grid(tiling, setup):
     """(grid, radius, length): the grid, at most tiling.grid along every axis, whose cells would have room for the
-    smallest pin of setup (its footprint with clearance and a wall each side, and its hole with a wall behind),
+    smallest pin of setup (its footprint with clearance and a wall each side, and its hole with room behind it),
     judged by the narrowest cell's middle line along each axis scaled by the change of count; None when the grid
     already has that room or no coarser one would (a single cell along the axis)."""
     s = setup.steps[-1]
-    need = max(2.0 * (s.reach + s.wall), s.hole_depth + s.wall)
+    # across the face: the footprint and a wall each side (_fits); along the pin: the hole and, from its axis, its
+    # radius and a share of a wall to the cell's far face (_Sides), the stricter of the two
+    need = max(2.0 * (s.reach + s.wall), s.hole_depth + s.wall, s.hole_depth + s.reach + SIDE_WALL * s.wall)
     grid = [int(g) for g in tiling.grid]
     out = list(grid)
     for x in range(3):
