@@ -32,7 +32,7 @@ verify_disassembly replays the plan on the real meshes: each block is swept alon
 the other block, and manifold3d's intersection volume with every piece of the other block must stay below a tiny
 fraction of the piece volume (a sample at which the hulls of the two pieces' slabs are apart needs no Boolean). A
 failed split is replaced by any other plane split (or single piece) that works; a block with none is welded and its
-pieces are named.
+pieces are named, with the grid at which no piece turns more than a half turn (bend_grid) when that is another.
 """
 
 from __future__ import annotations
