@@ -121,3 +121,21 @@ def test_cells_too_shallow_for_the_smallest_pin_name_a_shorter_pin_and_a_coarser
     coarse = _tiling(vol, (4, 1, 1))
     layout, _ = J.place_planned_joints(coarse, _map(vol), spec)
     assert len(layout.joints) == len(coarse.faces) and all(j.length >= 3.0 for j in layout.joints)
+
+
+@pytest.mark.slow
+def test_every_split_of_the_256_piece_twisted_torus_leaves_with_its_whole_surface_ahead(tmp_path):
+    # 4 x 4 x 16 at seed 7 was welded (p3-2-4, p3-2-5, p3-3-4, p3-3-5 stuck): a split's mean normal faced away from
+    # part of its surface (least cosine -0.14), and its pins drove the block through its neighbour
+    from helpers_build import example_spec
+
+    from volpuzzle.pipeline import prepare
+    from volpuzzle.spec import load_spec
+
+    s = prepare(load_spec(example_spec("twisted-torus", tmp_path, tolerance=0.05, grid=[4, 4, 16])))
+    dirs = A.split_directions(s.tiling, s.fmap, s.plan)
+    assert len(dirs) == 255 and min(m for _, m in dirs) > 0
+    for (d, _), step in zip(dirs, s.plan.steps, strict=True):
+        mv = set(step.moving)
+        for j in A._across(s.joints, step.moving, step.fixed):
+            assert np.allclose(j.direction, (1.0 if tuple(j.hole_cell) in mv else -1.0) * d, atol=1e-9)
