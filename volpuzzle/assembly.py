@@ -32,7 +32,7 @@ verify_disassembly replays the plan on the real meshes: each block is swept alon
 the other block, and manifold3d's intersection volume with every piece of the other block must stay below a tiny
 fraction of the piece volume (a sample at which the hulls of the two pieces' slabs are apart needs no Boolean). A
 failed split is replaced by any other plane split (or single piece) that works; a block with none is welded and its
-pieces are named.
+pieces are named, with the grid at which no piece turns more than a half turn (bend_grid) when that is another.
 """
 
 from __future__ import annotations
@@ -311,12 +311,10 @@ class _PlanSearch:
                     sign = 1.0 if up in mv else -1.0
                     across.append((n, sign))
                     normals.append(sign * self._normals[n])
-        total = np.concatenate(normals).sum(axis=0) if normals else np.zeros(3)
-        size = float(np.linalg.norm(total))
-        if size < 1e-12:
+        d = leave_direction(np.concatenate(normals)) if normals else None
+        if d is None:
             self._lost[key] = (len(across), None)
             return self._lost[key]
-        d = total / size
 
         held = [self.holds(n, sign * d) for n, sign in across]
         out = (held.count(False), d)
@@ -378,6 +376,37 @@ class _PlanSearch:
     def slide(self, moving, fixed):
         """The direction (3,) from fixed to moving that the split's pins point along, or None."""
         return self.lost(moving, fixed)[1]
+
+
+def leave_direction(normals):
+    """The unit direction (3,) in which a block leaves a split whose surface has the area-weighted normals (m, 3)
+    (from fixed to moving), or None when they cancel out: their mean, which bumps cannot tilt the way they tilt the
+    normal at one point, unless some of the surface then faces away from it (min dot <= 0, so the block would drag
+    through the other one). Then the direction that keeps the whole surface furthest ahead (the largest least
+    cosine to its normals) instead: a half pipe bent along its length, halved through its bend, has a mean normal
+    that leans toward the outside of the bend (more area there) and drives the inner half through the outer one's
+    rims, while straight out of the trough (its plane of symmetry) every normal is ahead."""
+    normals = np.asarray(normals, float)
+    total = normals.sum(axis=0)
+    size = float(np.linalg.norm(total))
+    if size < 1e-12:
+        return None
+    d = total / size
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
+    unit = unit[np.linalg.norm(normals, axis=1) > 1e-12]
+    if float((unit @ d).min()) > 0.0:
+        return d
+    # the largest least cosine: a coarse search over the sphere, then caps ever smaller round the best (the least
+    # cosine is concave over the cap where it is positive, so the refinement converges to its one maximum)
+    cands = np.concatenate([_directions(2048), d[None]])
+    best = cands[int(np.argmax((cands @ unit.T).min(axis=1)))]
+    angle = 4.0
+    for _ in range(12):
+        cands = np.concatenate([_cap(best, angle), best[None]])
+        best = cands[int(np.argmax((cands @ unit.T).min(axis=1)))]
+        best = best / np.linalg.norm(best)
+        angle *= 0.5
+    return best if float((unit @ best).min()) > float((unit @ d).min()) else d
 
 
 def _cap(d, angle_deg, count=48):
@@ -518,20 +547,19 @@ def _split_normals(tiling, fmap, step, k=7, of_cell=None):
 
 def split_directions(tiling, fmap, plan):
     """Per step, the mm direction in which its moving block should leave: the step's slide when the plan search chose
-    one, else the area-weighted mean normal of the whole split surface, which bumps cannot tilt the way they tilt the
-    normal at one point -> list of (direction (3,),
-    min_dot) in plan.steps order; min_dot = least cosine between it and the surface's normals (> 0: the block can
-    leave along it without touching the other block)."""
+    one, else leave_direction of the whole split surface -> list of (direction (3,), min_dot) in plan.steps order;
+    min_dot = least cosine between it and the surface's normals (> 0: the block can leave along it without touching
+    the other block)."""
     out = []
     of_cell = _faces_of_cells(tiling.faces)
     for step in plan.steps:
         ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
-        d = ns.sum(axis=0) if step.slide is None else np.asarray(step.slide, float)  # the plan's, when it chose one
-        size = float(np.linalg.norm(d))
-        if size < 1e-12:
+        # the plan's direction, when it chose one
+        d = leave_direction(ns) if step.slide is None else np.asarray(step.slide, float)
+        if d is None or float(np.linalg.norm(d)) < 1e-12:
             out.append((np.zeros(3), -1.0))
             continue
-        d = d / size
+        d = d / float(np.linalg.norm(d))
         unit = ns / np.maximum(np.linalg.norm(ns, axis=1), 1e-300)[:, None]
         out.append((d, float((unit @ d).min())))
     return out
@@ -992,10 +1020,47 @@ def steps_in_words(result):
     return lines
 
 
-def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1):
+MAX_BEND_DEG = 180.0  # the most a block may turn along one axis and still slide off its neighbours (see bend_grid)
+
+
+def bend_grid(tiling, fmap, max_bend_deg=MAX_BEND_DEG, lines=3, samples=16):
+    """The grid (tuple of 3) with more cells along every axis whose cells' parameter lines turn by more than
+    max_bend_deg, so that none does (the other axes unchanged), or None when no cell turns that far.
+
+    Why a half turn. A piece that turns further along an axis wraps round something: a piece of a coiled spring that
+    spans one and a half turns lies over its own next turn, so no straight slide lifts it off the piece below, nor
+    pulls the piece inside it inward. An arc of at most a half turn lies wholly ahead of the plane of its end face and
+    wholly on one side of its chord: it slides off its neighbour along that face's normal, and its inner layer leaves
+    toward the arc's centre. The spring of G+Smo (three turns) is welded at 2 x 2 x 2 and builds at 6 x 2 x 2.
+    Turning is measured on lines x lines lines per axis across the whole domain, samples per cell."""
+    grid = [int(g) for g in tiling.grid]
+    out = list(grid)
+    fr = (np.arange(lines) + 0.5) / lines
+    for a in range(3):
+        b, c = [x for x in range(3) if x != a]
+        brk = np.asarray(tiling.breaks[a], float)
+        t = np.concatenate([np.linspace(brk[k], brk[k + 1], samples) for k in range(len(brk) - 1)])
+        lo = [float(tiling.breaks[x][0]) for x in range(3)]
+        hi = [float(tiling.breaks[x][-1]) for x in range(3)]
+        uvw = np.zeros((lines, lines, len(t), 3))
+        uvw[..., a] = t
+        uvw[..., b] = (lo[b] + fr * (hi[b] - lo[b]))[:, None, None]
+        uvw[..., c] = (lo[c] + fr * (hi[c] - lo[c]))[None, :, None]
+        _, jac = fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+        tan = jac[:, :, a].reshape(lines * lines, len(brk) - 1, samples, 3)
+        tan = tan / np.maximum(np.linalg.norm(tan, axis=-1), 1e-300)[..., None]
+        cos = np.clip(np.einsum("lksi,lksi->lks", tan[:, :, 1:], tan[:, :, :-1]), -1.0, 1.0)
+        turn = np.degrees(np.arccos(cos)).sum(axis=2)  # (lines, cells along a)
+        if float(turn.max()) > max_bend_deg + 1e-6:
+            out[a] = max(grid[a], int(np.ceil(float(turn.sum(axis=1).max()) / max_bend_deg - 1e-6)))
+    return tuple(out) if out != grid else None
+
+
+def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1, tiling=None, fmap=None):
     """Disassembly replayed on the real meshes, reversed (jobs: see verify_disassembly). -> dict with assembly_order,
     steps, words, welded, stuck.
-    A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning)."""
+    A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning); with tiling and fmap
+    the message names the grid at which no cell bends more than a half turn (bend_grid), when that is another."""
     import sys
 
     if plan is None:
@@ -1004,7 +1069,10 @@ def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1):
     if res["welded"]:
         stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
         if "welded" not in tuple(allow):
-            tries = "another grid (more pieces along a curved axis)" + (
+            finer = bend_grid(tiling, fmap) if tiling is not None and fmap is not None else None
+            bent = [AXES[x] for x in range(3) if finer is not None and finer[x] != tiling.grid[x]]
+            tries = (f"grid {list(finer)}, whose cells turn at most {MAX_BEND_DEG:g} deg along {', '.join(bent)}"
+                     if finer is not None else "another grid (more pieces along a curved axis)") + (
                 ", a smaller randomize.amplitude, another randomize.seed" if randomized else "")
             raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
                                 f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "

@@ -660,6 +660,7 @@ class _Setup:
     shapes: list
     space: str
     sides: _Sides
+    lengths: _Geometry
 
     def holds(self, n, direction):
         """Whether face number n holds the smallest pin (alone) pointing along the unit mm direction (3,) from its
@@ -696,7 +697,8 @@ def _setup(tiling, fmap, joint_spec):
     # never shrink below what was asked, when that is smaller than the minimum
     r_min, l_min = min(r_min, sizes.radius), min(l_min, sizes.length)
     return _Setup(sizes, r_min, l_min, tuple(_size_steps(sizes, r_min, l_min)),
-                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space, _Sides(tiling, fmap))
+                  _face_shapes(tiling, fmap, cell_lengths, sizes.reach), joint_spec.space, _Sides(tiling, fmap),
+                  cell_lengths)
 
 
 def place_joints(tiling, fmap, joint_spec=None, plan=None):
@@ -810,8 +812,15 @@ def _why_not(fd, smallest, room, r_min, l_min, sides=None):
     if not fd.usable.any():
         return "no room: the face is collapsed (a pole), or its split slides along it: at most 0 mm"
     if not room:
-        best = _largest_fit(fd, smallest, r_min, l_min)
-        return (f"no room: the face holds a pin of radius at most {best:g} mm with its clearance and wall, less "
+        best, length = 0.0, l_min
+        for share in (1.0, 0.75, 0.5, 0.35):  # too shallow for l_min: what a shorter pin could be
+            length = _round_down(share * l_min)
+            best = _largest_fit(fd, smallest, r_min, length)
+            if best > 0 and _fits_sides(fd, smallest.scaled(best, length), sides):
+                break
+            best = 0.0
+        size = f"{best:g} mm" + (f" and {length:g} mm long" if best > 0 and length < l_min else "")
+        return (f"no room: the face holds a pin of radius at most {size} with its clearance and wall, less "
                 f"than the smallest allowed, {r_min:g} mm and {l_min:g} mm long")
     if not _fits(fd, smallest).any():
         leaning = _fits(fd, smallest, limit=False)
@@ -829,6 +838,13 @@ def _why_not(fd, smallest, room, r_min, l_min, sides=None):
                 f"{piece_id(fd.face.upper)} (the pieces bend or narrow there)")
     return (f"crowded: every spot with room meets another joint of {piece_id(fd.face.lower)} or "
             f"{piece_id(fd.face.upper)}")
+
+
+def _fits_sides(fd, s, sides):
+    """Whether the face holds a pin of size s alone at some point, measured on the real side faces too (sides None:
+    by _fits only)."""
+    ok = _fits(fd, s, lean=False)
+    return bool(ok.any()) and (sides is None or any(sides.clear(fd, int(k), s) for k in np.flatnonzero(ok)))
 
 
 def _contact(f, room, joint, reason):
@@ -874,10 +890,11 @@ def joint_graph(piece_ids, edges):
     return parts, sorted(set(ids) - touched)
 
 
-def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=None):
+def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=None, roomy=None):
     """One line saying why the puzzle does not hold together (a piece without a joint, or more than one part), with
     what would fit; None when it holds, for style none, or when joints.allow has 'loose'. contacts: report records
-    (Layout.contacts) whose reasons explain it."""
+    (Layout.contacts) whose reasons explain it; roomy: (grid, radius, length) of a coarser grid whose cells have room
+    for the smallest pin (coarser_grid), named when a contact has no room."""
     if style == "none" or "loose" in tuple(allow):
         return None
     ids = sorted(set(piece_ids))
@@ -892,8 +909,13 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
     reasons = [c.get("reason") or "" for c in mine]
     advice = "a coarser grid, or joints.allow: [loose]"
     if any(r.startswith("no room") for r in reasons):
-        best = max(float(r.split("at most ")[1].split(" mm")[0]) for r in reasons if r.startswith("no room"))
-        advice = (f"joints.min_radius at most {best:g} there, " if best > 0 else "") + advice
+        fits = [_fit_in(r) for r in reasons if r.startswith("no room")]
+        best, length = max(fits)
+        if roomy is not None:
+            advice = (f"grid {list(roomy[0])} or coarser (cells with room for a pin of {roomy[1]:g} mm by "
+                      f"{roomy[2]:g} mm), or joints.allow: [loose]")
+        size = f"joints.min_radius at most {best:g}" + (f" and joints.min_length at most {length:g}" if length else "")
+        advice = (f"{size} there, " if best > 0 else "") + advice
     elif any(r.startswith("crowded") for r in reasons):
         advice = "a smaller joints.radius, " + advice
     elif any(r.startswith("tilt") for r in reasons):
@@ -910,13 +932,44 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
     return f"{head}; {why} (got {got}, expected {advice})"
 
 
-def require_joined(tiling, layout, joint_spec=None):
+def _fit_in(reason):
+    """(radius, length or None) mm of the pin a 'no room' reason (_why_not) says its face holds; (0, None) when it
+    names no size (the pin's spot comes too close to another face of its pieces)."""
+    if "at most " not in reason:
+        return 0.0, None
+    size = reason.split("at most ")[1].split(" with ")[0]
+    radius = float(size.split(" mm")[0])
+    return radius, (float(size.split(" and ")[1].split(" mm")[0]) if " and " in size else None)
+
+
+def coarser_grid(tiling, setup):
+    """(grid, radius, length): the grid, at most tiling.grid along every axis, whose cells would have room for the
+    smallest pin of setup (its footprint with clearance and a wall each side, and its hole with room behind it),
+    judged by the narrowest cell's middle line along each axis scaled by the change of count; None when the grid
+    already has that room or no coarser one would (a single cell along the axis)."""
+    s = setup.steps[-1]
+    # across the face: the footprint and a wall each side (_fits); along the pin: the hole and, from its axis, its
+    # radius and a share of a wall to the cell's far face (_Sides), the stricter of the two
+    need = max(2.0 * (s.reach + s.wall), s.hole_depth + s.wall, s.hole_depth + s.reach + SIDE_WALL * s.wall)
+    grid = [int(g) for g in tiling.grid]
+    out = list(grid)
+    for x in range(3):
+        if grid[x] < 2:
+            continue
+        narrowest = min(_center_len(setup.lengths, idx, x) for idx in tiling.cells)
+        if narrowest < need:
+            out[x] = max(1, int(np.floor(grid[x] * narrowest / need)))
+    return (tuple(out), s.radius, s.length) if out != grid else None
+
+
+def require_joined(tiling, layout, joint_spec=None, roomy=None):
     """Raise SpecError (one line) unless every cell has a joint and the joints join all cells into one part; style
-    none and joints.allow: [loose] excepted. joint_spec: spec.JointSpec (None: its defaults)."""
+    none and joints.allow: [loose] excepted. joint_spec: spec.JointSpec (None: its defaults); roomy: coarser_grid's
+    answer, named in the message."""
     joint_spec = joint_spec if joint_spec is not None else JointSpec()
     problem = graph_problem([piece_id(c) for c in tiling.cells],
                             [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in layout.joints],
-                            layout.contacts, joint_spec.style, tuple(joint_spec.allow), tiling.grid)
+                            layout.contacts, joint_spec.style, tuple(joint_spec.allow), tiling.grid, roomy)
     if problem:
         raise SpecError(problem)
 
@@ -1086,6 +1139,7 @@ def place_planned_joints(tiling, fmap, joint_spec):
     With straight pins and bumpy cut faces a jointed face can only part along its pins, so the assembly is planned
     first (blocks that slide apart) and every pin of a split points along its sliding direction.
     """
+    setup = None
     if joint_spec.style == "none" or not tiling.faces:
         layout, plan = place_joints(tiling, fmap, joint_spec), None
     else:
@@ -1099,5 +1153,8 @@ def place_planned_joints(tiling, fmap, joint_spec):
         from .assembly import with_joints
 
         plan = with_joints(plan, tiling, list(layout.joints))
-    require_joined(tiling, layout, joint_spec)
+    roomy = None
+    if setup is not None and any(c["reason"] and c["reason"].startswith("no room") for c in layout.contacts):
+        roomy = coarser_grid(tiling, setup)
+    require_joined(tiling, layout, joint_spec, roomy)
     return layout, plan

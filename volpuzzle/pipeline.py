@@ -137,7 +137,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
-                                   jobs=jobs or os.cpu_count() or 1)
+                                   jobs=jobs or os.cpu_count() or 1, tiling=s.tiling, fmap=s.fmap)
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
     texture, texture_report = None, None
     if spec.texture is not None:
