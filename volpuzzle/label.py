@@ -510,8 +510,22 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
         if memo is not None:
             memo[key] = frames + (region,)  # the region kept alive, so that its id stays its own
     off_centre, uvw, x0, normals, x0_2, normals2, up, right, ok, ko = frames[:10]
-    # the face's outline and the joint axes, seen along the normal
-    height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
+    # the face's outline and the joint axes, seen along the normal. A height does not depend on the stroke, which
+    # only sets the least height kept: at or above the least height it was measured for, a height is exact (each
+    # centre on its own), so a finer stroke's pass measures again only the centres below that
+    hkey = ("height", int(a), int(side), id(region), str(text))
+    known = None if memo is None else memo.get(hkey)
+    if known is None:
+        height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
+    else:
+        height, floor = known
+        if hmin < floor:
+            again = np.flatnonzero(height < floor)
+            height = height.copy()
+            height[again] = _heights_allowed(ko, x0_2[again], normals2[again], right[again], up[again], aspect,
+                                             MAX_HEIGHT_MM, hmin)
+    if memo is not None and (known is None or hmin < known[1]):
+        memo[hkey] = (height, hmin)
     j = np.flatnonzero(ok & (height >= hmin))
     k, i = np.divmod(j, len(x0))
     u = up[j]
