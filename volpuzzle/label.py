@@ -862,9 +862,9 @@ def _measured(body, site, arrays=None):
     return h, near
 
 
-def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None):
+def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None, measured=None):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
-    `depth` mm into it at `site` -> Manifold.
+    `depth` mm into it at `site` -> Manifold. measured: _measured_heights(body, site) when the caller has them.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
     GeometryError naming `what` when the engine fails or the piece would not stay one solid."""
     m3 = _m3()
@@ -877,7 +877,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
-    h = _measured_heights(body, site, arrays)
+    h = _measured_heights(body, site, arrays) if measured is None else np.array(measured, dtype=float)
     gy, gx = np.gradient(h, ys, xs)
     # depth along the surface normal: a slope g lowers the floor by depth * sqrt(1 + g^2) measured vertically
     floor = h - depth * np.sqrt(1.0 + gx ** 2 + gy ** 2)
@@ -1034,14 +1034,15 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
                         break
                     tries -= 1
                     if id(site) not in on_body:
-                        on_body[id(site)] = site, float(np.mean(_measured(body, site, arrays)[1])) >= 0.98
+                        h, near = _measured(body, site, arrays)
+                        on_body[id(site)] = site, float(np.mean(near)) >= 0.98, h
                     if not on_body[id(site)][1]:
                         reasons.append("off the piece")
                         off = True
                         continue
                     try:
                         out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke,
-                                      arrays=arrays)
+                                      arrays=arrays, measured=on_body[id(site)][2])
                     except GeometryError as e:
                         reasons.append(str(e))
                         continue
