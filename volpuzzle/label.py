@@ -391,29 +391,49 @@ def _keep_out(pts, pad, lo, hi):
             "below": lo[idx].min(axis=1) - radii, "above": hi[idx].max(axis=1) + radii}
 
 
-def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min):
+def _centre_terms(ko, x0, normal, right, up):
+    """What _heights_allowed measures at centres x0 (k, 3) whatever the text: the centres along their frames (k,),
+    each run's centre across them less its slack ((runs, k), 2x across up) and whether it lies outside the band, and
+    the same of each run's middle point less its pad. A face's candidates ask this of every text tried on it."""
+    pts, pad, lo, hi, mid = ko["pts"], ko["pad"], ko["lo"], ko["hi"], ko["mid"]
+    xr, xu, xn = (np.einsum("ki,ki->k", x0, v) for v in (right, up, normal))
+    slack = ko["slack"][:, None]
+    cz = ko["centres"] @ normal.T - xn
+    qx = np.abs(pts[mid] @ right.T - xr)
+    qy = np.abs(pts[mid] @ up.T - xu)
+    z = pts[mid] @ normal.T - xn
+    return {"xr": xr, "xu": xu, "xn": xn, "cx": np.abs(ko["centres"] @ right.T - xr) - slack,
+            "cy2": (np.abs(ko["centres"] @ up.T - xu) - slack) * 2.0,
+            "out": (cz <= ko["below"][:, None]) | (cz >= ko["above"][:, None]),
+            "mx": qx - pad[mid][:, None], "my2": (qy - pad[mid][:, None]) * 2.0,
+            "mout": (z <= lo[mid][:, None]) | (z >= hi[mid][:, None])}
+
+
+def _terms_at(terms, at):
+    """_centre_terms of the centres `at` (indices) only."""
+    return {key: (v[at] if v.ndim == 1 else v[:, at]) for key, v in terms.items()}
+
+
+def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=None):
     """The text height (k,) at centres x0 (k, 3) with frames (normal, right, up): the smallest _limit over the
     keep-out points ko (_keep_out) in their bands, capped at `cap`. Heights below alive_min are only guaranteed to be
-    below it (those centres are dropped anyway).
+    below it (those centres are dropped anyway). terms: _centre_terms of these centres, when known.
 
     A ball of points bounds the _limit of all of them from below; runs whose bound is no smaller than a height one of
     their own points already allows cannot lower it, so only the few runs near a centre are measured point by point."""
     k = len(x0)
     height = np.full(k, float(cap))
-    pts, pad, lo, hi, mid = ko["pts"], ko["pad"], ko["lo"], ko["hi"], ko["mid"]
+    pts, pad, lo, hi = ko["pts"], ko["pad"], ko["lo"], ko["hi"]
     if not len(pts):
         return height
-    xr, xu, xn = (np.einsum("ki,ki->k", x0, v) for v in (right, up, normal))
-    cx = np.abs(ko["centres"] @ right.T - xr)
-    cy = np.abs(ko["centres"] @ up.T - xu)
-    cz = ko["centres"] @ normal.T - xn
-    slack = ko["slack"][:, None]
-    low = np.maximum((cx - slack) * (2.0 / aspect), (cy - slack) * 2.0)
-    low[(cz <= ko["below"][:, None]) | (cz >= ko["above"][:, None])] = np.inf
-    # one real point per run: its limit is an upper bound on the height
-    lim = _limit(pts[mid], x0, right, up, pad[mid], aspect)
-    z = pts[mid] @ normal.T - xn
-    lim[(z <= lo[mid][:, None]) | (z >= hi[mid][:, None])] = np.inf
+    if terms is None:
+        terms = _centre_terms(ko, x0, normal, right, up)
+    xr, xu, xn = terms["xr"], terms["xu"], terms["xn"]
+    low = np.maximum(terms["cx"] * (2.0 / aspect), terms["cy2"])
+    low[terms["out"]] = np.inf
+    # one real point per run: its limit (_limit) is an upper bound on the height
+    lim = np.maximum(terms["mx"] * (2.0 / aspect), terms["my2"])
+    lim[terms["mout"]] = np.inf
     height = np.minimum(height, lim.min(axis=0))
     # runs that could still lower a centre that may hold the text
     ci, ki = np.nonzero(low < np.where(height >= alive_min, height, -np.inf)[None])
@@ -515,15 +535,21 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
     # centre on its own), so a finer stroke's pass measures again only the centres below that
     hkey = ("height", int(a), int(side), id(region), str(text))
     known = None if memo is None else memo.get(hkey)
+    tkey = ("terms", int(a), int(side), id(region))
+    terms = None if memo is None else memo.get(tkey)
+    if terms is None:
+        terms = _centre_terms(ko, x0_2, normals2, right, up)
+        if memo is not None:
+            memo[tkey] = terms
     if known is None:
-        height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
+        height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin, terms)
     else:
         height, floor = known
         if hmin < floor:
             again = np.flatnonzero(height < floor)
             height = height.copy()
             height[again] = _heights_allowed(ko, x0_2[again], normals2[again], right[again], up[again], aspect,
-                                             MAX_HEIGHT_MM, hmin)
+                                             MAX_HEIGHT_MM, hmin, _terms_at(terms, again))
     if memo is not None and (known is None or hmin < known[1]):
         memo[hkey] = (height, hmin)
     j = np.flatnonzero(ok & (height >= hmin))
