@@ -381,3 +381,44 @@ def test_measured_heights_match_one_ray_per_sample():
                     want[j, i] = z
     assert np.abs(got - site.heights).max() > 1e-4  # the body's facets, not F
     assert np.allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_faces_and_joints_by_cell_are_what_the_whole_lists_give():
+    # label_pieces hands each piece only its cell's joints and faces: the per-cell questions must not change
+    vol = _box_model()
+    fmap = Map(vol)
+    tiling = tile(vol, (2, 2, 2))
+    joints = J.plan_joints(tiling, fmap)
+    touching = L._cell_joints(joints)
+    for index, cell in tiling.cells.items():
+        assert L._faces_of(tiling, index) == tiling.faces_of(index)
+        mine = touching.get(tuple(index), [])
+        assert mine == [j for j in joints if tuple(index) in (tuple(j.pin_cell), tuple(j.hole_cell))]
+        for face, _ in tiling.faces_of(index):
+            assert L._face_joints(face, mine) == L._face_joints(face, joints)
+        for a, b in zip(L._joint_axes(tuple(index), mine), L._joint_axes(tuple(index), joints), strict=True):
+            assert np.array_equal(a, b)
+        full = list(L.label_sites(cell, tiling, fmap, joints, tries=4))
+        own = list(L.label_sites(cell, tiling, fmap, mine, tries=4))
+        assert full and [(s.face, s.height_mm, s.center.tobytes()) for s in full] == \
+            [(s.face, s.height_mm, s.center.tobytes()) for s in own]
+
+
+def test_heights_kept_for_a_coarser_stroke_give_the_finer_strokes_sites():
+    # a finer stroke reuses the heights measured for a coarser one and measures only the centres below its floor:
+    # the sites must be those a search of its own finds, in the same order, also for text that fits only finely
+    tiling, fmap, joints, cell, _ = _box_puzzle()
+    found = {}
+    for text in ("p0-0-0", "p0-0-0-0-0-0-0"):
+        memo = {}
+        for stroke in L.STROKES_MM:
+            kept = list(L.label_sites(cell, tiling, fmap, joints, text=text, stroke=stroke, tries=8, measured=memo,
+                                      outer=False))
+            fresh = list(L.label_sites(cell, tiling, fmap, joints, text=text, stroke=stroke, tries=8, outer=False))
+            assert [(s.face, s.height_mm, s.center.tobytes(), s.up.tobytes()) for s in kept] == \
+                [(s.face, s.height_mm, s.center.tobytes(), s.up.tobytes()) for s in fresh]
+            found[text, stroke] = len(kept)
+        assert any(k[0] == "height" for k in memo)
+    # the long text fits only with the finest stroke: its sites are centres measured again below the coarse floor
+    assert found["p0-0-0", L.MIN_STROKE_MM] > 0
+    assert found["p0-0-0-0-0-0-0", L.MIN_STROKE_MM] == 0 and found["p0-0-0-0-0-0-0", L.HAIR_STROKE_MM] > 0

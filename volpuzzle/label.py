@@ -272,6 +272,38 @@ def site_on_joint_face(site, joints, cell_index):
     return False
 
 
+def _cell_joints(joints):
+    """{cell index: the joints touching the cell (pin or hole side), in the order of `joints`}. What every per-cell
+    question here (_joint_axes, _face_joints, site_on_joint_face) looks at: handing a piece only its own joints keeps
+    its labelling cost from growing with the number of pieces."""
+    out = {}
+    for j in joints or ():
+        pin, hole = tuple(j.pin_cell), tuple(j.hole_cell)
+        out.setdefault(pin, []).append(j)
+        if hole != pin:
+            out.setdefault(hole, []).append(j)
+    return out
+
+
+_FACES_OF = weakref.WeakKeyDictionary()  # tiling -> {cell index: tiling.faces_of(index)}
+
+
+def _faces_of(tiling, index):
+    """tiling.faces_of(index), from one pass over the tiling's faces for all its cells (each call of faces_of scans
+    every face of the tiling)."""
+    try:
+        by_cell = _FACES_OF.get(tiling)
+    except TypeError:  # a tiling that cannot be weakly referenced is simply not indexed
+        return tiling.faces_of(index)
+    if by_cell is None:
+        by_cell = {}
+        for f in tiling.faces:  # faces_of's order: the tiling's faces in turn, the min side's entry first
+            by_cell.setdefault(tuple(f.lower), []).append((f, +1))
+            by_cell.setdefault(tuple(f.upper), []).append((f, -1))
+        _FACES_OF[tiling] = by_cell
+    return list(by_cell.get(tuple(index), ()))
+
+
 def _joint_axes(cell_index, joints):
     """(points (k, 3) along the axes of the cell's joints, every 0.25 mm, covering pin, base and hole; keep-out
     radius R (k,)) of every joint touching the cell."""
@@ -359,29 +391,49 @@ def _keep_out(pts, pad, lo, hi):
             "below": lo[idx].min(axis=1) - radii, "above": hi[idx].max(axis=1) + radii}
 
 
-def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min):
+def _centre_terms(ko, x0, normal, right, up):
+    """What _heights_allowed measures at centres x0 (k, 3) whatever the text: the centres along their frames (k,),
+    each run's centre across them less its slack ((runs, k), 2x across up) and whether it lies outside the band, and
+    the same of each run's middle point less its pad. A face's candidates ask this of every text tried on it."""
+    pts, pad, lo, hi, mid = ko["pts"], ko["pad"], ko["lo"], ko["hi"], ko["mid"]
+    xr, xu, xn = (np.einsum("ki,ki->k", x0, v) for v in (right, up, normal))
+    slack = ko["slack"][:, None]
+    cz = ko["centres"] @ normal.T - xn
+    qx = np.abs(pts[mid] @ right.T - xr)
+    qy = np.abs(pts[mid] @ up.T - xu)
+    z = pts[mid] @ normal.T - xn
+    return {"xr": xr, "xu": xu, "xn": xn, "cx": np.abs(ko["centres"] @ right.T - xr) - slack,
+            "cy2": (np.abs(ko["centres"] @ up.T - xu) - slack) * 2.0,
+            "out": (cz <= ko["below"][:, None]) | (cz >= ko["above"][:, None]),
+            "mx": qx - pad[mid][:, None], "my2": (qy - pad[mid][:, None]) * 2.0,
+            "mout": (z <= lo[mid][:, None]) | (z >= hi[mid][:, None])}
+
+
+def _terms_at(terms, at):
+    """_centre_terms of the centres `at` (indices) only."""
+    return {key: (v[at] if v.ndim == 1 else v[:, at]) for key, v in terms.items()}
+
+
+def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=None):
     """The text height (k,) at centres x0 (k, 3) with frames (normal, right, up): the smallest _limit over the
     keep-out points ko (_keep_out) in their bands, capped at `cap`. Heights below alive_min are only guaranteed to be
-    below it (those centres are dropped anyway).
+    below it (those centres are dropped anyway). terms: _centre_terms of these centres, when known.
 
     A ball of points bounds the _limit of all of them from below; runs whose bound is no smaller than a height one of
     their own points already allows cannot lower it, so only the few runs near a centre are measured point by point."""
     k = len(x0)
     height = np.full(k, float(cap))
-    pts, pad, lo, hi, mid = ko["pts"], ko["pad"], ko["lo"], ko["hi"], ko["mid"]
+    pts, pad, lo, hi = ko["pts"], ko["pad"], ko["lo"], ko["hi"]
     if not len(pts):
         return height
-    xr, xu, xn = (np.einsum("ki,ki->k", x0, v) for v in (right, up, normal))
-    cx = np.abs(ko["centres"] @ right.T - xr)
-    cy = np.abs(ko["centres"] @ up.T - xu)
-    cz = ko["centres"] @ normal.T - xn
-    slack = ko["slack"][:, None]
-    low = np.maximum((cx - slack) * (2.0 / aspect), (cy - slack) * 2.0)
-    low[(cz <= ko["below"][:, None]) | (cz >= ko["above"][:, None])] = np.inf
-    # one real point per run: its limit is an upper bound on the height
-    lim = _limit(pts[mid], x0, right, up, pad[mid], aspect)
-    z = pts[mid] @ normal.T - xn
-    lim[(z <= lo[mid][:, None]) | (z >= hi[mid][:, None])] = np.inf
+    if terms is None:
+        terms = _centre_terms(ko, x0, normal, right, up)
+    xr, xu, xn = terms["xr"], terms["xu"], terms["xn"]
+    low = np.maximum(terms["cx"] * (2.0 / aspect), terms["cy2"])
+    low[terms["out"]] = np.inf
+    # one real point per run: its limit (_limit) is an upper bound on the height
+    lim = np.maximum(terms["mx"] * (2.0 / aspect), terms["my2"])
+    lim[terms["mout"]] = np.inf
     height = np.minimum(height, lim.min(axis=0))
     # runs that could still lower a centre that may hold the text
     ci, ki = np.nonzero(low < np.where(height >= alive_min, height, -np.inf)[None])
@@ -478,8 +530,28 @@ def _candidates(cell, fmap, a, side, has_joint, axes_pts, axes_r, text, depth, o
         if memo is not None:
             memo[key] = frames + (region,)  # the region kept alive, so that its id stays its own
     off_centre, uvw, x0, normals, x0_2, normals2, up, right, ok, ko = frames[:10]
-    # the face's outline and the joint axes, seen along the normal
-    height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin)
+    # the face's outline and the joint axes, seen along the normal. A height does not depend on the stroke, which
+    # only sets the least height kept: at or above the least height it was measured for, a height is exact (each
+    # centre on its own), so a finer stroke's pass measures again only the centres below that
+    hkey = ("height", int(a), int(side), id(region), str(text))
+    known = None if memo is None else memo.get(hkey)
+    tkey = ("terms", int(a), int(side), id(region))
+    terms = None if memo is None else memo.get(tkey)
+    if terms is None:
+        terms = _centre_terms(ko, x0_2, normals2, right, up)
+        if memo is not None:
+            memo[tkey] = terms
+    if known is None:
+        height = _heights_allowed(ko, x0_2, normals2, right, up, aspect, MAX_HEIGHT_MM, hmin, terms)
+    else:
+        height, floor = known
+        if hmin < floor:
+            again = np.flatnonzero(height < floor)
+            height = height.copy()
+            height[again] = _heights_allowed(ko, x0_2[again], normals2[again], right[again], up[again], aspect,
+                                             MAX_HEIGHT_MM, hmin, _terms_at(terms, again))
+    if memo is not None and (known is None or hmin < known[1]):
+        memo[hkey] = (height, hmin)
     j = np.flatnonzero(ok & (height >= hmin))
     k, i = np.divmod(j, len(x0))
     u = up[j]
@@ -666,7 +738,7 @@ def _model_centre(tiling, fmap):
 def _outer_faces(cell, tiling, fmap):
     """The cell's faces on D's boundary (none across a periodic seam) -> list of (axis, side, hidden): hidden when the
     face looks into the model (the inside of a shell, out of sight once assembled) rather than out of it."""
-    shared = {(f.axis, side) for f, side in tiling.faces_of(tuple(cell.index))}
+    shared = {(f.axis, side) for f, side in _faces_of(tiling, tuple(cell.index))}
     centre = _model_centre(tiling, fmap)
     out = []
     for a in range(3):
@@ -698,7 +770,8 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
     axes_pts, axes_r = _joint_axes(index, joints)
     # classes in the order they are tried: inner faces without a joint, with one; outer faces hidden, in sight
     faces = [(int(hj), order, face.axis, side, hj)
-             for order, (face, side) in enumerate(tiling.faces_of(index)) for hj in [bool(_face_joints(face, joints))]]
+             for order, (face, side) in enumerate(_faces_of(tiling, index))
+             for hj in [bool(_face_joints(face, joints))]]
     # A class is measured only when none of the earlier ones holds the text: the same order as sorting all at once.
     for rank in range(4 if outer else 2):
         if rank == 2:  # the outer faces are looked at only when no inner face held the text
@@ -815,9 +888,9 @@ def _measured(body, site, arrays=None):
     return h, near
 
 
-def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None):
+def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None, measured=None):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
-    `depth` mm into it at `site` -> Manifold.
+    `depth` mm into it at `site` -> Manifold. measured: _measured_heights(body, site) when the caller has them.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
     GeometryError naming `what` when the engine fails or the piece would not stay one solid."""
     m3 = _m3()
@@ -830,7 +903,7 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
-    h = _measured_heights(body, site, arrays)
+    h = _measured_heights(body, site, arrays) if measured is None else np.array(measured, dtype=float)
     gy, gx = np.gradient(h, ys, xs)
     # depth along the surface normal: a slope g lowers the floor by depth * sqrt(1 + g^2) measured vertically
     floor = h - depth * np.sqrt(1.0 + gx ** 2 + gy ** 2)
@@ -987,14 +1060,15 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
                         break
                     tries -= 1
                     if id(site) not in on_body:
-                        on_body[id(site)] = site, float(np.mean(_measured(body, site, arrays)[1])) >= 0.98
+                        h, near = _measured(body, site, arrays)
+                        on_body[id(site)] = site, float(np.mean(near)) >= 0.98, h
                     if not on_body[id(site)][1]:
                         reasons.append("off the piece")
                         off = True
                         continue
                     try:
                         out = engrave(body, site, t, depth=depth, what=what or cell.id, stroke=stroke,
-                                      arrays=arrays)
+                                      arrays=arrays, measured=on_body[id(site)][2])
                     except GeometryError as e:
                         reasons.append(str(e))
                         continue
@@ -1066,13 +1140,15 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None):
     from .geometry import solid_of, to_trimesh
 
     poses = poses or {}
+    touching = _cell_joints(joints)
 
     def one(k, p):
         pose = poses.get(p.id)
         # the piece id, else its number in the piece list (report.md gives the key)
         texts = (p.id, str(k + 1))
+        mine = touching.get(tuple(p.cell), [])  # the only joints label_piece looks at
         try:
-            body, site, note = label_piece(solid_of(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, joints,
+            body, site, note = label_piece(solid_of(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, mine,
                                            what=p.id, texts=texts, avoid=None if pose is None else pose.down)
         except GeometryError as e:
             # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
@@ -1082,7 +1158,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None):
         mesh = to_trimesh(body)
         volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
         entry = site.to_report()
-        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, joints, p.cell))
+        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, mine, p.cell))
         return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
                 entry, p.volume - volume)
 

@@ -8,6 +8,8 @@ neighbour shows another piece, so seams and pins read at a glance. Painting tria
 painter's algorithm) let long cut faces poke through the pieces in front of them.
 """
 
+from functools import lru_cache
+
 import numpy as np
 from numba import njit
 
@@ -215,7 +217,9 @@ def _shade(ibuf, cols, which, owner, outline, img, top, left):
                 img[top + r, left + c, k] = np.uint8(np.rint(min(max(v, 0.0), 1.0) * 255.0))
 
 
+@lru_cache(maxsize=8)
 def _font(size):
+    """Pillow's default font at `size` px: loaded once per size (each step picture asks for it again)."""
     from PIL import ImageFont
 
     try:
@@ -347,24 +351,27 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     near, far = np.full(len(parts), np.inf), np.full(len(parts), -np.inf)  # each piece's depth range
     np.minimum.at(near, owner, sz.min(axis=1))
     np.maximum.at(far, owner, sz.max(axis=1))
+    centres = np.array([v.mean(axis=0) for v, _ in parts])  # each piece's, for the arrows
     every_x, every_y = every @ right, every @ up
-    files, placed = [], set()
+    # a step's frame spans the puzzle and the puzzle moved by the block's way back: the extremes of a moved copy
+    # are the moved extremes (rounding is monotonic), so no step looks at every vertex again
+    ex, ey = (every_x.min(), every_x.max()), (every_y.min(), every_y.max())
+    files, placed = [], np.zeros(len(parts), np.bool_)
     for n, step in enumerate(steps, start=1):
         moving = [where[p] for p in (step.get("pieces") or [step.get("piece")]) if p in where]
         d = step.get("direction")
         back = -reach * np.asarray(d, float) if d is not None else np.zeros(3)
         back_screen = back @ axes
-        shown = np.zeros(len(parts), np.bool_)
-        shown[sorted(placed | set(moving))] = True
+        shown = placed.copy()
+        shown[moving] = True
         shift = np.zeros((len(parts), 3))
         shift[moving] = back_screen
         which = np.zeros(len(parts), np.int64)  # grey for the pieces in place, their own colours for the block
         which[moving] = 1
         # frame: the whole puzzle and the block drawn back, the same scale for every step
-        x = np.concatenate([every_x, every_x + back_screen[0]])
-        y = np.concatenate([every_y, every_y + back_screen[1]])
-        lo = np.array([x.min(), y.min()])
-        span = np.maximum(np.array([x.max(), y.max()]) - lo, 1e-9)
+        bx, by = back_screen[0], back_screen[1]
+        lo = np.array([min(ex[0], ex[0] + bx), min(ey[0], ey[0] + by)])
+        span = np.maximum(np.array([max(ex[1], ex[1] + bx), max(ey[1], ey[1] + by)]) - lo, 1e-9)
         scale = min((w * k * 0.9) / span[0], (h * k * 0.82) / span[1])
         img = np.full((h * k, w * k, 3), 255, np.uint8)
         zr = ((near + shift[:, 2])[shown].min(initial=np.inf), (far + shift[:, 2])[shown].max(initial=-np.inf))
@@ -375,7 +382,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
         pil = Image.fromarray(img)
         draw = ImageDraw.Draw(pil)
         if moving and d is not None:
-            centre = np.mean([parts[i][0].mean(axis=0) for i in moving], axis=0)
+            centre = centres[moving].mean(axis=0)
 
             def to_px(p, lo=lo, span=span, scale=scale):
                 return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
@@ -387,7 +394,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
         name = f"step-{n:02d}.png"
         pil.reduce(k).save(directory / name, format="PNG", compress_level=1)
         files.append(name)
-        placed.update(moving)
+        placed[moving] = True
     return files
 
 
