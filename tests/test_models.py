@@ -96,6 +96,19 @@ def test_every_builtin_is_certified_right_handed(built, name):
     assert orientation(vol).handedness == "right"
 
 
+def test_a_left_handed_construction_is_turned_right_handed():
+    from volpuzzle.spline.jacobian import orientation
+
+    right = models.quarter_torus(50.0, 20.0)
+    left = models._reverse_axis(right, 0)
+    assert orientation(left).handedness == "left"
+    fixed = models._right_handed(left)
+    assert orientation(fixed).handedness == "right"
+    assert models._right_handed(right) is right  # a right-handed one is passed through untouched
+    uvw = np.random.default_rng(3).random((50, 3))
+    assert np.allclose(fixed.evaluate(uvw), right.evaluate(uvw), atol=1e-9)  # the same solid
+
+
 def test_generalized_torus_has_c1_breaks_at_nine_interior_knots(built):
     vol = built["generalized-torus"]
     assert vol.degrees[2] == 3
