@@ -152,7 +152,6 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     # where even 1 / _LEAN would not reach some cut triangle's plane, the averaged normals are no guide: the least
     # move behind every triangle is solved instead; where there is none (an apex), `apex` places each id on its own
     override = (np.zeros(0, np.int64), np.zeros((0, 3)))
-    apexes = np.zeros(nc, bool)  # clusters whose ids were placed each on its own
     lost = np.flatnonzero(worst < _LEAN)
     if len(lost):
         solved = _behind_every_triangle(disp, lost, cluster, faces, cross, tri_size, real, on_cut, half)
@@ -164,7 +163,6 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
                 for c in np.unique(cluster[points]):  # the slides below follow the mean of the cluster's ids
                     disp[c] = placed[cluster[points] == c].mean(axis=0)
                 worst[np.unique(cluster[points])] = 1.0
-                apexes[lost[~solved]] = True
     disp *= 1.0 / np.clip(worst, _LEAN, 1.0)[:, None]
     # where: clusters on one face only; edges: triangle edges along a line where two faces meet
     pos = np.zeros((nc, 3))
@@ -201,9 +199,6 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
     first = np.r_[True, rows[1:] != rows[:-1]]
     rows, cols, face_of, lam, dist = rows[first], cols[first], face_of[first], lam[first], dist[first]
-    # an apex's mean move (its cap's) is no edge's set-back: along an edge from it (a cone's straight ruling, one
-    # long segment) the points follow the edge's other end, whose move is the set-back of the same two faces
-    lam = np.where(apexes[e[cols, 0]], 1.0, np.where(apexes[e[cols, 1]], 0.0, lam))
     slide = (1.0 - lam)[:, None] * disp[e[cols, 0]] + lam[:, None] * disp[e[cols, 1]]
     n = unit[rows, face_of]
     slide -= np.einsum("ij,ij->i", slide, n)[:, None] * n  # only along the point's own face
@@ -414,10 +409,7 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
         for a, sd in cut_sides:
             on_face = q.copy()
             on_face[:, a] = box[sd, a]
-            chord = np.linalg.norm(moved - fmap.evaluate(on_face), axis=1)
-            # ids on a pole's line (a second collapsed face) lie on every face through it: no distance to keep there
-            chord = chord[chord > 1e-9 * max(float(np.abs(moved).max()), 1.0)]
-            near.append(float(chord.min()) if len(chord) else np.inf)
+            near.append(np.min(np.linalg.norm(moved - fmap.evaluate(on_face), axis=1)))
         if min(near) >= _APEX_CHORD * half:
             break
         depth *= 1.25
