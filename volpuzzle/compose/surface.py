@@ -86,7 +86,7 @@ def _is_cut_face(axis, corner, sampling):
     return 0 < corner[axis] < n or any(s.axis == axis for s in sampling.seams)
 
 
-def _setback(xyz, faces, slot, cut, half):
+def _setback(xyz, faces, slot, cut, half, apex=None):
     """Displacements (n, 3) that set every cut face back by `half` mm along its normal while the cell's outer faces
     stay where they are. xyz (n, 3), faces (m, 3) outward, slot (m,) the cell face (0..5) of each triangle, cut (6,)
     bool. Per point (points closer than WELD_MM count as one: collapsed faces repeat a point under several ids), the
@@ -97,7 +97,10 @@ def _setback(xyz, faces, slot, cut, half):
     cut triangles, so that every cut triangle's plane is half back at each corner, and points on a collapsed face
     (a pole) move with the faces meeting there. Points inside one face near its edge then follow the edge's slide
     along the face, fading out over twice the slide (at least _FADE half-clearances), so that none is overtaken by the
-    moving edge (a fold) and the tip of a sharp wedge stays half a clearance from the cut."""
+    moving edge (a fold) and the tip of a sharp wedge stays half a clearance from the cut.
+    Where no move of a point is behind all its cut triangles (an apex where cones meet over more than half a turn,
+    the centre of a sphere cage) and `apex` is given, apex(points (k,) indices into xyz, half) -> (k, 3) or None
+    -> (indices (j,), displacements (j, 3)) or None sets back the points around it through the map (_apex_inset)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -146,6 +149,20 @@ def _setback(xyz, faces, slot, cut, half):
     for k in range(3):
         c = cluster[faces[on_cut, k]]
         np.minimum.at(worst, c, -np.einsum("ij,ij->i", disp[c], cross[on_cut]) / tri_size[on_cut] / half)
+    # where even 1 / _LEAN would not reach some cut triangle's plane, the averaged normals are no guide: the least
+    # move behind every triangle is solved instead; where there is none (an apex), `apex` places each id on its own
+    override = (np.zeros(0, np.int64), np.zeros((0, 3)))
+    lost = np.flatnonzero(worst < _LEAN)
+    if len(lost):
+        solved = _behind_every_triangle(disp, lost, cluster, faces, cross, tri_size, real, on_cut, half)
+        worst[lost[solved]] = 1.0
+        if apex is not None and not solved.all():
+            placed = apex(np.flatnonzero(np.isin(cluster, lost[~solved])), half)
+            if placed is not None:
+                override = points, placed = placed
+                for c in np.unique(cluster[points]):  # the slides below follow the mean of the cluster's ids
+                    disp[c] = placed[cluster[points] == c].mean(axis=0)
+                worst[np.unique(cluster[points])] = 1.0
     disp *= 1.0 / np.clip(worst, _LEAN, 1.0)[:, None]
     # where: clusters on one face only; edges: triangle edges along a line where two faces meet
     pos = np.zeros((nc, 3))
@@ -157,7 +174,7 @@ def _setback(xyz, faces, slot, cut, half):
     e, common = e[common.sum(axis=1) >= 2], common[common.sum(axis=1) >= 2]
     single = np.flatnonzero(count == 1)
     if not len(e) or not len(single):
-        return disp[cluster]
+        return _overridden(disp[cluster], override)
     # a point slid by s along the outside is overtaken by none of the points behind it, and leaves the wedge's tip
     # the half clearance from the cut, when they follow over 2 s (sliding s needs sin(angle) = half / s)
     reach = max(_FADE * half, 2.0 * float(np.linalg.norm(disp, axis=1).max()))
@@ -173,7 +190,7 @@ def _setback(xyz, faces, slot, cut, half):
     ok = common[cols, face_of]  # the edge bounds the point's own face
     rows, cols, face_of = rows[ok], cols[ok], face_of[ok]
     if not len(rows):
-        return disp[cluster]
+        return _overridden(disp[cluster], override)
     lam = np.clip(np.einsum("ij,ij->i", pos[rows] - p0[cols], seg[cols]) / seg_len2[cols], 0.0, 1.0)
     dist = np.linalg.norm(p0[cols] + lam[:, None] * seg[cols] - pos[rows], axis=1)
     near_edges = (rows, cols, face_of, lam)
@@ -189,7 +206,44 @@ def _setback(xyz, faces, slot, cut, half):
     weight = np.clip(1.0 - dist / own_reach, 0.0, 1.0)
     disp[rows] += weight[:, None] * slide
     _keep_behind_cut_edges(disp, pos, unit, e, common, np.asarray(cut), near_edges, half)
-    return disp[cluster]
+    return _overridden(disp[cluster], override)
+
+
+def _overridden(disp, override):
+    """disp (n, 3) with the rows of override = (points (k,), displacements (k, 3)) replaced."""
+    points, placed = override
+    disp[points] = placed
+    return disp
+
+
+def _behind_every_triangle(disp, lost, cluster, faces, cross, tri_size, real, on_cut, half):
+    """The least displacement of each cluster in `lost` that leaves it `half` behind the plane of every cut triangle
+    around it and on the plane of every outer one: a least-distance problem (Lawson & Hanson, ch. 23), solved by NNLS.
+    disp (c, 3) is changed in place where one exists. -> (len(lost),) bool: solved."""
+    from scipy.optimize import nnls
+
+    solved = np.zeros(len(lost), bool)
+    where = np.full(len(disp), -1)
+    where[lost] = np.arange(len(lost))
+    unit_t = cross / np.maximum(tri_size, 1e-300)[:, None]
+    rows = [[] for _ in lost]
+    for k in range(3):
+        w = where[cluster[faces[:, k]]]
+        for t in np.flatnonzero((w >= 0) & real):
+            rows[w[t]].append(t)
+    for i, c in enumerate(lost):
+        tris = np.unique(np.asarray(rows[i], dtype=np.int64))
+        cut_t, outer_t = tris[on_cut[tris]], tris[~on_cut[tris]]
+        # G d >= h: -n . d >= half behind each cut triangle, n . d = 0 on each outer one (as two inequalities)
+        g = np.concatenate([-unit_t[cut_t], unit_t[outer_t], -unit_t[outer_t]])
+        h = np.concatenate([np.full(len(cut_t), float(half)), np.zeros(2 * len(outer_t))])
+        e = np.vstack([g.T, h[None, :]])
+        f = np.array([0.0, 0.0, 0.0, 1.0])
+        r = e @ nnls(e, f)[0] - f
+        if abs(r[3]) > 1e-9:  # r = 0: the constraints have no common solution
+            disp[c] = -r[:3] / r[3]
+            solved[i] = True
+    return solved
 
 
 def _keep_behind_cut_edges(disp, pos, unit, e, common, cut, near_edges, half):
@@ -271,12 +325,14 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     face_clearance > 0 the cut faces are set back by half of it (the neighbour sets its side back by the other
     half), the outer faces stay exact."""
     tri_ids, slots, cut = [], [], np.zeros(6, bool)  # triangles as global vertex ids, their cell face, cut faces
+    sides = np.zeros((6, 2), np.int64)  # the axis and side (0 min, 1 max) of each cell face
     for k, face in enumerate(sampling.lattice.cell_faces(tuple(cell.index))):
         fm = sampling.faces[face.key]
         t = fm.ids[fm.tris]
         tri_ids.append(t[:, [0, 2, 1]] if face.reverse else t)
         slots.append(np.full(len(t), k))
         cut[k] = _is_cut_face(face.axis, face.corner, sampling)
+        sides[k] = face.axis, 0 if face.reverse else 1
     tri_ids = np.concatenate(tri_ids)
     uniq, faces = np.unique(tri_ids.ravel(), return_inverse=True)
     faces = faces.reshape(-1, 3)
@@ -284,8 +340,102 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
         faces = faces[:, [0, 2, 1]]
     xyz = sampling.xyz[uniq]
     if face_clearance > 0 and cut.any():
-        xyz = xyz + _setback(xyz, faces, np.concatenate(slots), cut, 0.5 * face_clearance)
+        box = cell_box(cell, sampling)
+        uvw = _in_box(sampling.uvw[uniq], box, sampling)
+        slot = np.concatenate(slots)
+
+        def apex(points, half):  # an apex is set back through the map, which _setback does not know
+            return _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half)
+
+        xyz = xyz + _setback(xyz, faces, slot, cut, 0.5 * face_clearance, apex)
     return geometry.weld(xyz, faces, WELD_MM)
+
+
+def _in_box(uvw, box, sampling):
+    """uvw (n, 3) with each periodic parameter shifted by the period to where it lies in the cell box (2, 3)."""
+    uvw = np.array(uvw, dtype=float)
+    for seam in sampling.seams:
+        a = seam.axis
+        period = float(sampling.domain[1, a] - sampling.domain[0, a])
+        span = box[1, a] - box[0, a]
+        uvw[uvw[:, a] > box[1, a] + 1e-9 * span, a] -= period
+        uvw[uvw[:, a] < box[0, a] - 1e-9 * span, a] += period
+    return uvw
+
+
+_APEX_SHARE = 0.4  # of a cell's span along each axis that an apex's ids stay inside from a cut face
+_APEX_CHORD = 1.25  # half-clearances that each moved apex id keeps from the cut faces, measured along the parameters
+_APEX_REACH = 4.0  # the parameter move fades out at this many times the apex's own depth along the collapsed axis
+
+
+def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
+    """The points around an apex set back through the map, or None: `points` (k,) indices into uvw (n, 3) and xyz
+    (n, 3) that sit at one point where a cell face collapses (the centre of a sphere cage, where the cones of the
+    polar cuts meet) and that no single move can set back from all of their cut triangles: each cone bends round
+    them over more than half a turn. Every id there moves off the collapsed face into the cell along the map, to the
+    parameters of its own place on the boundary, clamped inside every cut face (by _APEX_SHARE of the span at most),
+    as far along the collapsed axis as keeps it _APEX_CHORD half-clearances from each cut face: the apex becomes a
+    small cap and each cone's triangles keep their own direction. The points nearer the apex than _APEX_REACH times
+    that depth move the same way, the depth fading out, each clamped _APEX_CHORD half-clearances inside every cut
+    face. -> (indices (j,), displacements (j, 3) mm)."""
+    t = xyz[faces]
+    area = np.bincount(slot, weights=np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
+                       minlength=6)
+    collapsed = area <= 1e-9 * max(float(area.max()), 1e-300)
+    span = box[1] - box[0]
+    rel = 1e-9 * span
+    down = [k for k in np.flatnonzero(collapsed)
+            if np.all(np.abs(uvw[points, sides[k, 0]] - box[sides[k, 1], sides[k, 0]]) <= rel[sides[k, 0]])]
+    if len(down) != 1:
+        return None  # not one collapsed face under all of them: no axis to move along
+    axis, side = sides[down[0]]
+    others = [a for a in range(3) if a != axis]
+    cut_sides = [(a, sd) for a, sd in sides[cut] if a != axis]
+    lo, hi = box[0].copy(), box[1].copy()
+    for a, sd in cut_sides:
+        if sd == 0:
+            lo[a] = box[0, a] + _APEX_SHARE * span[a]
+        else:
+            hi[a] = box[1, a] - _APEX_SHARE * span[a]
+    q = np.clip(uvw[points], lo, hi)
+    sign = 1.0 if side == 0 else -1.0
+    depth = 1e-4 * span[axis]
+    while True:
+        if depth > 0.25 * span[axis]:
+            return None
+        q[:, axis] = box[side, axis] + sign * depth
+        moved = fmap.evaluate(q)
+        near = []
+        for a, sd in cut_sides:
+            on_face = q.copy()
+            on_face[:, a] = box[sd, a]
+            near.append(np.min(np.linalg.norm(moved - fmap.evaluate(on_face), axis=1)))
+        if min(near) >= _APEX_CHORD * half:
+            break
+        depth *= 1.25
+    # every point within the reach: its collapsed parameter pushed in by the fading depth, the others clamped
+    reach = _APEX_REACH * depth
+    off = sign * (uvw[:, axis] - box[side, axis])
+    region = np.flatnonzero(off < reach)
+    outer_sides = [(a, sd) for a, sd in sides[~cut & ~collapsed]]
+    for a, sd in outer_sides:
+        if np.any(np.abs(uvw[region, a] - box[sd, a]) <= rel[a]):
+            return None  # an outer face near the apex must stay where it is
+    q = uvw[region].copy()
+    q[:, axis] = box[side, axis] + sign * (depth + off[region] * (1.0 - depth / reach))
+    _, jac = fmap.evaluate_with_jacobian(q)
+    lo = np.repeat(box[:1], len(region), axis=0)
+    hi = np.repeat(box[1:], len(region), axis=0)
+    for a, sd in cut_sides:
+        step = np.minimum(_APEX_SHARE * span[a], _APEX_CHORD * half / np.maximum(np.linalg.norm(jac[:, :, a], axis=1),
+                                                                                   1e-300))
+        if sd == 0:
+            lo[:, a] = box[0, a] + step
+        else:
+            hi[:, a] = box[1, a] - step
+    for a in others:
+        q[:, a] = np.clip(q[:, a], lo[:, a], hi[:, a])
+    return region, fmap.evaluate(q) - xyz[region]
 
 
 def face_clearance_volume(sampling, face_clearance):
