@@ -233,3 +233,32 @@ def test_report_piece_entry_and_clean_json(pieces):
                  "bbox_mm": [[0.0, 0.0, 0.0], [10.0, 10.0, 10.0]], "triangles": 12, "plate": None}
     assert clean_json({"a": (np.float32(0.1), np.int64(3), float("nan"), 0.1 + 0.2)}) == {"a": [0.1, 3, None, 0.3]}
     json.dumps(e, allow_nan=False)
+
+
+def _piece(pid, mesh):
+    return SimpleNamespace(id=pid, mesh=mesh)
+
+
+def test_printable_names_float32_rounding_when_only_the_file_precision_breaks_the_piece():
+    # one closed body 1e-6 mm thick at x = 100: float32 (resolution ~8e-6 mm there) folds its two faces together
+    box = trimesh.creation.box(extents=(1e-6, 20.0, 20.0))
+    box.apply_translation((100.0, 0.0, 0.0))
+    assert closed_problem(box) is None
+    with pytest.raises(GeometryError, match=r"^p0-0-0: the piece is no longer one closed solid at the float32 "
+                                            r"precision .*try a smaller output.tolerance$"):
+        export_mod.printable([_piece("p0-0-0", box)])
+
+
+def test_printable_names_a_piece_whose_own_surface_meets_itself_and_where():
+    # two boxes sharing one edge, each with its own vertices (as the engine keeps a pinch): no tolerance mends it
+    a = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    b = a.copy()
+    b.apply_translation((10.0, 10.0, 0.0))
+    both = trimesh.Trimesh(np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + len(a.vertices)]),
+                           process=False)
+    with pytest.raises(GeometryError) as err:
+        export_mod.printable([_piece("p1-0-0", both)])
+    msg = str(err.value)
+    assert msg.startswith("p1-0-0: the piece's surface meets itself at (5.00, 5.00, ")
+    assert "non-manifold edges" in msg and "float32" not in msg
+    assert msg.endswith("try other cuts: another grid, splits or model.cage.padding")

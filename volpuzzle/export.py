@@ -711,10 +711,29 @@ def printable(pieces):
         mesh = trimesh.Trimesh(v, f, process=False)
         problem = closed_problem(mesh)
         if problem:
-            raise GeometryError(f"{p.id}: the piece is no longer one closed solid at the float32 precision of STL and "
-                                f"3MF files ({problem}); try a smaller output.tolerance")
+            raise GeometryError(_printable_problem(p, problem))
         out.append(dataclasses.replace(p, mesh=mesh, volume=signed_volume(v, f), triangles=int(len(f))))
     return out
+
+
+def _printable_problem(piece, problem):
+    """The message for a piece whose float32 mesh is not one closed solid: rounding broke it, or the engine's own
+    float64 solid already meets itself (two coincident vertices the engine keeps apart, which every reader of the
+    file merges: a zero-thickness sheet or a pinch), which no finer tolerance mends."""
+    from .check import closed_problem
+
+    own = closed_problem(trimesh.Trimesh(piece.mesh.vertices, piece.mesh.faces, process=False))
+    if not own:
+        return (f"{piece.id}: the piece is no longer one closed solid at the float32 precision of STL and 3MF files "
+                f"({problem}); try a smaller output.tolerance")
+    merged = trimesh.Trimesh(piece.mesh.vertices, piece.mesh.faces, process=True, validate=False)
+    edges, counts = np.unique(merged.edges_sorted, axis=0, return_counts=True)
+    odd = edges[counts != 2]
+    where = (" at (" + ", ".join(f"{c:.2f}" for c in merged.vertices[odd[0]].mean(axis=0)) + ") mm"
+             if len(odd) else "")
+    return (f"{piece.id}: the piece's surface meets itself{where} (got {own} once coincident vertices are merged, "
+            f"as a slicer reads the file; expected one closed solid); try other cuts: another grid, splits or "
+            f"model.cage.padding")
 
 
 def pin_triangles(pieces, joints):
