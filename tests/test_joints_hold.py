@@ -119,6 +119,24 @@ def test_a_puzzle_in_two_parts_fails_with_one_line():
     assert J.graph_problem(ids, [], contacts, allow=("loose",)) is None
 
 
+def test_a_crowded_piece_is_not_sent_to_the_coarser_grid_its_neighbours_room_asks_for():
+    # the 4x4x64 twisted torus: its first loose piece is crowded, other faces lack room, and the grid with room
+    # (4x4x47) is crowded too, so the advice follows the reason shown, not the room of another face
+    ids = ["p0-0-0", "p1-0-0", "p2-0-0"]
+    contacts = [{"pieces": ["p0-0-0", "p1-0-0"], "pinned": False,
+                 "reason": "crowded: every spot with room meets another joint of p0-0-0 or p1-0-0"},
+                {"pieces": ["p0-0-0", "p2-0-0"], "pinned": False,
+                 "reason": "no room: the face holds a pin of radius at most 0.6 mm with its clearance and wall"}]
+    msg = J.graph_problem(ids, [("p1-0-0", "p2-0-0")], contacts, grid=(3, 1, 1), roomy=((2, 1, 1), 1.0, 3.0))
+    assert msg.startswith("joints: piece p0-0-0 gets no joint; between p0-0-0 and p1-0-0, crowded")
+    assert msg.endswith("(got grid [3, 1, 1], expected a smaller joints.radius, a coarser grid, or joints.allow: "
+                        "[loose])")
+    assert "[2, 1, 1]" not in msg
+    flipped = J.graph_problem(ids, [("p1-0-0", "p2-0-0")], contacts[::-1], grid=(3, 1, 1),
+                              roomy=((2, 1, 1), 1.0, 3.0))
+    assert "between p0-0-0 and p2-0-0, no room" in flipped and "grid [2, 1, 1] or coarser" in flipped
+
+
 @pytest.mark.parametrize("value,path,words", [
     (["glued"], "joints.allow[0]", "unknown (got 'glued', expected one of loose, welded)"),
     (5, "joints.allow", "not a list"),

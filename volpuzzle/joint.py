@@ -907,8 +907,11 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
     mine = [c for c in contacts if set(c.get("pieces", ())) & set(stray)
             and not set(c.get("pieces", ())) <= set(stray) and not c.get("pinned")]
     reasons = [c.get("reason") or "" for c in mine]
+    # the advice answers the reason the message shows: a grid coarse enough for room can still be crowded (the
+    # 4x4x64 twisted torus names crowding first; the grid its 'no room' faces would ask for, 4x4x47, is crowded too)
+    shown_reason = next((r for r in reasons if r), "")
     advice = "a coarser grid, or joints.allow: [loose]"
-    if any(r.startswith("no room") for r in reasons):
+    if shown_reason.startswith("no room"):
         fits = [_fit_in(r) for r in reasons if r.startswith("no room")]
         best, length = max(fits)
         if roomy is not None:
@@ -916,9 +919,9 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
                       f"{roomy[2]:g} mm), or joints.allow: [loose]")
         size = f"joints.min_radius at most {best:g}" + (f" and joints.min_length at most {length:g}" if length else "")
         advice = (f"{size} there, " if best > 0 else "") + advice
-    elif any(r.startswith("crowded") for r in reasons):
+    elif shown_reason.startswith("crowded"):
         advice = "a smaller joints.radius, " + advice
-    elif any(r.startswith("tilt") for r in reasons):
+    elif shown_reason.startswith("tilt"):
         # smaller blocks have flatter splits; a bumpy warp tilts them further
         advice = "more pieces along the curved axis or a smaller randomize.amplitude, or joints.allow: [loose]"
     why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
