@@ -27,6 +27,13 @@ def _point_segment2(px, py, pz, ax, ay, az, bx, by, bz):
 
 
 @njit(cache=True, nogil=True)
+def _along2(px, py, pz, ax, ay, az, ex, ey, ez, v):
+    """Squared distance from a point to a + v e, the closest point of an edge from a along e."""
+    qx, qy, qz = ax + v * ex - px, ay + v * ey - py, az + v * ez - pz
+    return qx * qx + qy * qy + qz * qz
+
+
+@njit(cache=True, nogil=True)
 def _point_triangle(px, py, pz, t):
     """Distance from the point (px, py, pz) to the triangle t (3, 3)."""
     ax, ay, az = t[0, 0], t[0, 1], t[0, 2]
@@ -47,25 +54,19 @@ def _point_triangle(px, py, pz, t):
         return math.sqrt(min(corner, bpx * bpx + bpy * bpy + bpz * bpz))
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:  # edge ab
-        v = d1 / (d1 - d3)
-        qx, qy, qz = ax + v * abx - px, ay + v * aby - py, az + v * abz - pz
-        return math.sqrt(min(corner, qx * qx + qy * qy + qz * qz))
+        return math.sqrt(min(corner, _along2(px, py, pz, ax, ay, az, abx, aby, abz, d1 / (d1 - d3))))
     d5 = abx * cpx + aby * cpy + abz * cpz
     d6 = acx * cpx + acy * cpy + acz * cpz
     if d6 >= 0.0 and d5 <= d6:  # vertex region of c
         return math.sqrt(min(corner, cpx * cpx + cpy * cpy + cpz * cpz))
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:  # edge ac
-        w = d2 / (d2 - d6)
-        qx, qy, qz = ax + w * acx - px, ay + w * acy - py, az + w * acz - pz
-        return math.sqrt(min(corner, qx * qx + qy * qy + qz * qz))
+        return math.sqrt(min(corner, _along2(px, py, pz, ax, ay, az, acx, acy, acz, d2 / (d2 - d6))))
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:  # edge bc
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        qx = t[1, 0] + w * (t[2, 0] - t[1, 0]) - px
-        qy = t[1, 1] + w * (t[2, 1] - t[1, 1]) - py
-        qz = t[1, 2] + w * (t[2, 2] - t[1, 2]) - pz
-        return math.sqrt(min(corner, qx * qx + qy * qy + qz * qz))
+        return math.sqrt(min(corner, _along2(px, py, pz, t[1, 0], t[1, 1], t[1, 2], t[2, 0] - t[1, 0],
+                                             t[2, 1] - t[1, 1], t[2, 2] - t[1, 2], w)))
     s = va + vb + vc  # = |ab x ac|^2
     if s > 1e-12 * (abx * abx + aby * aby + abz * abz) * (acx * acx + acy * acy + acz * acz):
         v, w = vb / s, vc / s
