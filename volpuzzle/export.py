@@ -722,7 +722,7 @@ def _printable_problem(piece, problem):
     file merges: a zero-thickness sheet or a pinch), which no finer tolerance mends."""
     from .check import closed_problem
 
-    own = closed_problem(trimesh.Trimesh(piece.mesh.vertices, piece.mesh.faces, process=False))
+    own = closed_problem(piece.mesh)
     if not own:
         return (f"{piece.id}: the piece is no longer one closed solid at the float32 precision of STL and 3MF files "
                 f"({problem}); try a smaller output.tolerance")
