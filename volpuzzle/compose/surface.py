@@ -157,9 +157,10 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
         solved = _behind_every_triangle(disp, lost, cluster, faces, cross, tri_size, real, on_cut, half)
         worst[lost[solved]] = 1.0
         if apex is not None and not solved.all():
-            placed = apex(np.flatnonzero(np.isin(cluster, lost[~solved])), half)
-            if placed is not None:
-                override = points, placed = placed
+            found = apex(np.flatnonzero(np.isin(cluster, lost[~solved])), half)
+            if found is not None:
+                override = found
+                points, placed = found
                 for c in np.unique(cluster[points]):  # the slides below follow the mean of the cluster's ids
                     disp[c] = placed[cluster[points] == c].mean(axis=0)
                 worst[np.unique(cluster[points])] = 1.0
@@ -340,11 +341,11 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
         faces = faces[:, [0, 2, 1]]
     xyz = sampling.xyz[uniq]
     if face_clearance > 0 and cut.any():
-        box = cell_box(cell, sampling)
-        uvw = _in_box(sampling.uvw[uniq], box, sampling)
         slot = np.concatenate(slots)
 
-        def apex(points, half):  # an apex is set back through the map, which _setback does not know
+        def apex(points, half, xyz=xyz):  # set back through the map, which _setback does not know; rare, so the
+            box = cell_box(cell, sampling)  # cell's parameters are gathered only when an apex asks for them
+            uvw = _in_box(sampling.uvw[uniq], box, sampling)
             return _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half)
 
         xyz = xyz + _setback(xyz, faces, slot, cut, 0.5 * face_clearance, apex)
