@@ -389,10 +389,12 @@ def test_faces_and_joints_by_cell_are_what_the_whole_lists_give():
     fmap = Map(vol)
     tiling = tile(vol, (2, 2, 2))
     joints = J.plan_joints(tiling, fmap)
-    touching = L._cell_joints(joints)
+    touching = J.joints_by_cell(joints)
     for index, cell in tiling.cells.items():
-        assert L._faces_of(tiling, index) == tiling.faces_of(index)
-        mine = touching.get(tuple(index), [])
+        # the tiling's per-cell index gives what a scan of all its faces gives, in the same order
+        scan = [(f, side) for f in tiling.faces for side, end in ((+1, f.lower), (-1, f.upper)) if end == index]
+        assert tiling.faces_of(index) == scan
+        mine = [joints[k] for k in touching.get(tuple(index), [])]
         assert mine == [j for j in joints if tuple(index) in (tuple(j.pin_cell), tuple(j.hole_cell))]
         for face, _ in tiling.faces_of(index):
             assert L._face_joints(face, mine) == L._face_joints(face, joints)

@@ -46,7 +46,8 @@ import trimesh
 from .errors import GeometryError
 from .geometry import is_ok
 from .grid import AXES, piece_id
-from .joint import joint_graph
+from .joint import joint_graph, joints_by_cell
+from .tile import faces_by_cell
 
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
 
@@ -154,7 +155,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
     jointed = []
     steps = []  # built as assembly (post-order), reversed at the end
 
-    of_cell = _faces_of_cells(faces)
+    of_cell = faces_by_cell(faces)
 
     def crossing(moving, fixed):
         mv = set(moving)
@@ -434,7 +435,7 @@ def with_joints(plan, tiling, joints):
 
     keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
     numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
-    of_cell = _faces_of_cells([tiling.faces[n] for n in numbers])
+    of_cell = faces_by_cell([tiling.faces[n] for n in numbers])
     steps = []
     for s in plan.steps:
         mv, fx = set(s.moving), set(s.fixed)
@@ -519,22 +520,12 @@ def _face_normal_grids(tiling, fmap, numbers, k=7):
     return out
 
 
-def _faces_of_cells(faces):
-    """{cell index: face numbers (ascending) that have it on either side}."""
-    out = {}
-    for n, f in enumerate(faces):
-        out.setdefault(tuple(f.lower), []).append(n)
-        if tuple(f.upper) != tuple(f.lower):
-            out.setdefault(tuple(f.upper), []).append(n)
-    return out
-
-
 def _split_normals(tiling, fmap, step, k=7, of_cell=None):
     """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving.
-    of_cell: _faces_of_cells(tiling.faces), when the caller has it."""
+    of_cell: tile.faces_by_cell(tiling.faces), when the caller has it."""
     mv, fx = set(step.moving), set(step.fixed)
     numbers, signs = [], []
-    of_cell = of_cell if of_cell is not None else _faces_of_cells(tiling.faces)
+    of_cell = of_cell if of_cell is not None else faces_by_cell(tiling.faces)
     for n in sorted({n for c in step.moving for n in of_cell.get(tuple(c), ())}):
         f = tiling.faces[n]
         lo, up = tuple(f.lower), tuple(f.upper)
@@ -551,7 +542,7 @@ def split_directions(tiling, fmap, plan):
     min_dot = least cosine between it and the surface's normals (> 0: the block can leave along it without touching
     the other block)."""
     out = []
-    of_cell = _faces_of_cells(tiling.faces)
+    of_cell = faces_by_cell(tiling.faces)
     for step in plan.steps:
         ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
         # the plan's direction, when it chose one
@@ -885,10 +876,7 @@ class _Replay:
         self.pool, self.free = pool, free
         self.cell_of = {pid: tuple(int(x) for x in pid[1:].split("-")) for pid in scene.ids}
         self.planned = {frozenset(s.moving) | frozenset(s.fixed): s for s in plan.steps}
-        self._joints_of = {}
-        for k, j in enumerate(joints):
-            for c in {tuple(j.pin_cell), tuple(j.hole_cell)}:
-                self._joints_of.setdefault(c, []).append(k)
+        self._joints_of = joints_by_cell(joints)
         self.stuck = []
         self.booleans_remote = 0
         self.remote_blocks = 0

@@ -866,6 +866,19 @@ def plan_joints(tiling, fmap, joint_spec=None, plan=None):
 # The joint graph: pieces as nodes, joints as edges
 
 
+def joints_by_cell(joints):
+    """{cell index: numbers (ascending) into `joints` of those with the cell on their pin or hole side}: what the
+    per-cell questions of label and the assembly replay look at, so that their cost per piece does not grow with the
+    number of pieces."""
+    out = {}
+    for k, j in enumerate(joints or ()):
+        pin, hole = tuple(j.pin_cell), tuple(j.hole_cell)
+        out.setdefault(pin, []).append(k)
+        if hole != pin:
+            out.setdefault(hole, []).append(k)
+    return out
+
+
 def joint_graph(piece_ids, edges):
     """piece_ids: iterable of ids; edges: iterable of (id, id) -> (parts: list of sorted id lists, largest first;
     loose: sorted ids with no joint)."""

@@ -272,38 +272,6 @@ def site_on_joint_face(site, joints, cell_index):
     return False
 
 
-def _cell_joints(joints):
-    """{cell index: the joints touching the cell (pin or hole side), in the order of `joints`}. What every per-cell
-    question here (_joint_axes, _face_joints, site_on_joint_face) looks at: handing a piece only its own joints keeps
-    its labelling cost from growing with the number of pieces."""
-    out = {}
-    for j in joints or ():
-        pin, hole = tuple(j.pin_cell), tuple(j.hole_cell)
-        out.setdefault(pin, []).append(j)
-        if hole != pin:
-            out.setdefault(hole, []).append(j)
-    return out
-
-
-_FACES_OF = weakref.WeakKeyDictionary()  # tiling -> {cell index: tiling.faces_of(index)}
-
-
-def _faces_of(tiling, index):
-    """tiling.faces_of(index), from one pass over the tiling's faces for all its cells (each call of faces_of scans
-    every face of the tiling)."""
-    try:
-        by_cell = _FACES_OF.get(tiling)
-    except TypeError:  # a tiling that cannot be weakly referenced is simply not indexed
-        return tiling.faces_of(index)
-    if by_cell is None:
-        by_cell = {}
-        for f in tiling.faces:  # faces_of's order: the tiling's faces in turn, the min side's entry first
-            by_cell.setdefault(tuple(f.lower), []).append((f, +1))
-            by_cell.setdefault(tuple(f.upper), []).append((f, -1))
-        _FACES_OF[tiling] = by_cell
-    return list(by_cell.get(tuple(index), ()))
-
-
 def _joint_axes(cell_index, joints):
     """(points (k, 3) along the axes of the cell's joints, every 0.25 mm, covering pin, base and hole; keep-out
     radius R (k,)) of every joint touching the cell."""
@@ -738,7 +706,7 @@ def _model_centre(tiling, fmap):
 def _outer_faces(cell, tiling, fmap):
     """The cell's faces on D's boundary (none across a periodic seam) -> list of (axis, side, hidden): hidden when the
     face looks into the model (the inside of a shell, out of sight once assembled) rather than out of it."""
-    shared = {(f.axis, side) for f, side in _faces_of(tiling, tuple(cell.index))}
+    shared = {(f.axis, side) for f, side in tiling.faces_of(tuple(cell.index))}
     centre = _model_centre(tiling, fmap)
     out = []
     for a in range(3):
@@ -770,7 +738,7 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
     axes_pts, axes_r = _joint_axes(index, joints)
     # classes in the order they are tried: inner faces without a joint, with one; outer faces hidden, in sight
     faces = [(int(hj), order, face.axis, side, hj)
-             for order, (face, side) in enumerate(_faces_of(tiling, index))
+             for order, (face, side) in enumerate(tiling.faces_of(index))
              for hj in [bool(_face_joints(face, joints))]]
     # A class is measured only when none of the earlier ones holds the text: the same order as sorting all at once.
     for rank in range(4 if outer else 2):
@@ -1138,9 +1106,11 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None):
     import dataclasses
 
     from .geometry import solid_of, to_trimesh
+    from .joint import joints_by_cell
 
     poses = poses or {}
-    touching = _cell_joints(joints)
+    joints = list(joints or ())
+    touching = {cell: [joints[k] for k in ks] for cell, ks in joints_by_cell(joints).items()}
 
     def one(k, p):
         pose = poses.get(p.id)

@@ -1,6 +1,7 @@
 """tile: split the parameter domain D into an l x m x n grid of cells (parameter boxes)."""
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -57,16 +58,32 @@ class Tiling:
     def cell(self, index):
         return self.cells[tuple(index)]
 
+    @cached_property
+    def _face_numbers(self):
+        return faces_by_cell(self.faces)  # once per tiling: a scan of every face per cell grows as n^2
+
     def faces_of(self, index):
-        """Faces touching one cell, as (face, side) with side -1 when the cell is on the face's min side."""
+        """Faces touching one cell, as (face, side) with side -1 when the cell is on the face's min side, in the
+        order of self.faces."""
         index = tuple(index)
         out = []
-        for f in self.faces:
+        for n in self._face_numbers.get(index, ()):
+            f = self.faces[n]
             if f.lower == index:
                 out.append((f, +1))
             if f.upper == index:
                 out.append((f, -1))
         return out
+
+
+def faces_by_cell(faces):
+    """{cell index: numbers (ascending) of the faces in `faces` that have the cell on either side}."""
+    out = {}
+    for n, f in enumerate(faces):
+        out.setdefault(tuple(f.lower), []).append(n)
+        if tuple(f.upper) != tuple(f.lower):
+            out.setdefault(tuple(f.upper), []).append(n)
+    return out
 
 
 def _knot_cuts(knots, degree, count, axis):
