@@ -393,8 +393,8 @@ def leave_direction(normals):
     if size < 1e-12:
         return None
     d = total / size
-    unit = normals / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
-    unit = unit[np.linalg.norm(normals, axis=1) > 1e-12]
+    lengths = np.linalg.norm(normals, axis=1)
+    unit = normals[lengths > 1e-12] / lengths[lengths > 1e-12, None]
     if float((unit @ d).min()) > 0.0:
         return d
     # the largest least cosine: a coarse search over the sphere, then caps ever smaller round the best (the least
