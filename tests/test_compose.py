@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
+from volpuzzle import workers
 from volpuzzle.compose import cell_joints, pool
 from volpuzzle.compose import sampling as compose_sampling
 from volpuzzle.errors import GeometryError
@@ -271,7 +272,7 @@ def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
     # with main_takes False the workers build every piece; with True this process builds alongside them
     monkeypatch.setattr(pool, "_POOL_MIN_PIECES", 0)
     monkeypatch.setattr(pool, "_POOL_MIN_SECONDS", 0.0)
-    monkeypatch.setattr(pool, "_MAIN_TAKES_PIECES", main_takes)
+    monkeypatch.setattr(workers, "_MAIN_TAKES_ITEMS", main_takes)
     vol, t, fmap, sampling, pieces = _built("twisted")
     seen = []
     pooled = C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling,
@@ -285,7 +286,7 @@ def test_pool_gives_the_same_pieces(monkeypatch, main_takes):
 
 def test_small_puzzles_stay_serial(monkeypatch):
     _, t, fmap, sampling, _ = _built("twisted")
-    monkeypatch.setattr(pool.concurrent.futures, "ProcessPoolExecutor", None)  # would fail if a pool were made
+    monkeypatch.setattr(workers.concurrent.futures, "ProcessPoolExecutor", None)  # would fail if a pool were made
     assert len(C.compose(t, fmap, [], sampling.tolerance, jobs=2, sampling=sampling)) == len(t.cells)
 
 

@@ -1100,43 +1100,57 @@ def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
     return body, None
 
 
-def label_pieces(tiling, fmap, pieces, joints, poses=None):
+def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
     """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
-    None}, mm^3 removed)"""
+    None}, mm^3 removed). workers: a volpuzzle.workers.Workers that labels some of the pieces (same results)."""
     import dataclasses
 
-    from .geometry import solid_of, to_trimesh
     from .joint import joints_by_cell
+    from .workers import MeshRef
 
     poses = poses or {}
     joints = list(joints or ())
     touching = {cell: [joints[k] for k in ks] for cell, ks in joints_by_cell(joints).items()}
-
-    def one(k, p):
+    items = []
+    for k, p in enumerate(pieces):
         pose = poses.get(p.id)
-        # the piece id, else its number in the piece list (report.md gives the key)
-        texts = (p.id, str(k + 1))
-        mine = touching.get(tuple(p.cell), [])  # the only joints label_piece looks at
-        try:
-            body, site, note = label_piece(solid_of(p.mesh, p.id), tiling.cell(p.cell), tiling, fmap, mine,
-                                           what=p.id, texts=texts, avoid=None if pose is None else pose.down)
-        except GeometryError as e:
-            # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
-            return p, {"skipped": str(e)}, 0.0
-        if site is None:
-            return p, {"skipped": note}, 0.0
-        mesh = to_trimesh(body)
-        volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
-        entry = site.to_report()
-        entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, mine, p.cell))
-        return (dataclasses.replace(p, mesh=mesh, volume=volume, triangles=int(len(mesh.faces))),
-                entry, p.volume - volume)
-
-    results = [one(k, p) for k, p in enumerate(pieces)]
-    out = [r[0] for r in results]
-    sites = {p.id: r[1] for p, r in zip(pieces, results, strict=True)}
-    removed = sum(r[2] for r in results)
+        items.append((k, p.id, tuple(p.cell), MeshRef(p.mesh), p.volume, None if pose is None else pose.down))
+    shared = (tiling, fmap, touching)
+    results = (workers.map_pieces(_label_one, items, shared=shared, what="label") if workers is not None
+               else [_label_one(shared, item) for item in items])
+    out = [p if r[0] is None else dataclasses.replace(p, mesh=r[0].mesh, volume=r[1],
+                                                      triangles=int(len(r[0].mesh.faces)))
+           for p, r in zip(pieces, results, strict=True)]
+    sites = {p.id: r[2] for p, r in zip(pieces, results, strict=True)}
+    removed = sum(r[3] for r in results)
     return out, sites, removed
+
+
+def _label_one(shared, item):
+    """One piece of label_pieces, wherever it runs: shared (tiling, fmap, {cell: its joints}), item (number, id,
+    cell, MeshRef, volume, bed direction or None) -> (MeshRef or None when unchanged, volume, label report, mm^3
+    removed)."""
+    from .geometry import solid_of, to_trimesh
+    from .workers import MeshRef
+
+    tiling, fmap, touching = shared
+    k, pid, cell, ref, volume_before, down = item
+    # the piece id, else its number in the piece list (report.md gives the key)
+    texts = (pid, str(k + 1))
+    mine = touching.get(cell, [])  # the only joints label_piece looks at
+    try:
+        body, site, note = label_piece(solid_of(ref.mesh, pid), tiling.cell(cell), tiling, fmap, mine,
+                                       what=pid, texts=texts, avoid=down)
+    except GeometryError as e:
+        # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
+        return None, volume_before, {"skipped": str(e)}, 0.0
+    if site is None:
+        return None, volume_before, {"skipped": note}, 0.0
+    mesh = to_trimesh(body)
+    volume = float(body.volume())  # the engine's own sum, as compose measured p.volume; trimesh's costs more
+    entry = site.to_report()
+    entry["on_joint_face"] = bool(entry["on_joint_face"] or site_on_joint_face(site, mine, cell))
+    return MeshRef(mesh), volume, entry, volume_before - volume
 
 
 def bed_labels(pieces, labels, poses):

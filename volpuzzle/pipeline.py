@@ -114,22 +114,37 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
           allow_large=False):
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
-    from .assembly import replay_assembly
-    from .check import assert_passed, check_printability
-    from .export import check_target, piece_colors, pin_triangles, spec_inputs, write_build
-    from .joint import dowel_parts, require_pieces_joined
-    from .layout import check_plate, lay_dowels_flat, plates_and_preview
-    from .report import build_report, fit, require_printable
+    from .export import check_target, spec_inputs
     from .spec import load_spec, with_overrides
-    from .texture import build_texture
+    from .workers import start as start_workers
 
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
     target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
+    jobs = jobs or os.cpu_count() or 1
+    # started first, so that the workers' start-up runs on the other cores while this process loads and plans
+    workers = start_workers(jobs, math.prod(spec.grid))
+    try:
+        return _build(spec, target, jobs, force, progress, workers, t_start)
+    finally:
+        if workers is not None:
+            workers.close()
+
+
+def _build(spec, target, jobs, force, progress, workers, t_start):
+    """build() once the spec is read and the target free: every stage, then the files -> the report dict."""
+    from .assembly import replay_assembly
+    from .check import assert_passed, check_printability
+    from .export import piece_colors, pin_triangles, write_build
+    from .joint import dowel_parts, require_pieces_joined
+    from .layout import check_plate, lay_dowels_flat, plates_and_preview
+    from .report import build_report, fit, require_printable
+    from .texture import build_texture
+
     timer = Timer()
     s = prepare(spec, timer, progress)
     check_plate(spec, s.tiling, s.fmap)
-    s = _compose(spec, s, jobs or os.cpu_count() or 1, timer, progress)
+    s = _compose(spec, s, jobs, timer, progress, workers)
     require_pieces_joined(spec, s.pieces, s.joints, s.contacts or ())
     assert_passed(s.checks)
     for warning in fit(spec, s.joints, s.face_clearance)["warnings"]:
@@ -137,7 +152,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
-                                   jobs=jobs or os.cpu_count() or 1, tiling=s.tiling, fmap=s.fmap)
+                                   jobs=jobs, tiling=s.tiling, fmap=s.fmap)
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
     texture, texture_report = None, None
     if spec.texture is not None:
@@ -172,7 +187,7 @@ def _face_clearance(spec, s):
     return clearance
 
 
-def _compose(spec, s, jobs, timer, progress):
+def _compose(spec, s, jobs, timer, progress, workers=None):
     """The pieces composed, finished (_finish) and checked -> Stages with pieces, poses, labels, checks. A volume
     model whose pieces only lack volume is composed again at a finer tessellation tolerance, up to three times."""
     from .compose import compose, face_clearance_volume
@@ -194,10 +209,11 @@ def _compose(spec, s, jobs, timer, progress):
         for attempt in range(3):
             with timer("compose", progress):
                 pieces = compose(s.tiling, s.fmap, s.joints, tolerance, jobs=jobs, progress=progress.piece,
-                                 face_clearance=clearance)
+                                 face_clearance=clearance, workers=workers)
             sampling = pieces.sampling  # the finishing stages return plain lists
             face_gaps = face_clearance_volume(sampling, clearance)
-            done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress)
+            done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress,
+                           workers)
             checks = done.checks
             deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                             and checks["volume_error"] < -0.005)
@@ -217,7 +233,7 @@ def _compose(spec, s, jobs, timer, progress):
     return dataclasses.replace(done, tolerance=tolerance, face_clearance=clearance, mesh_report=mesh_report)
 
 
-def _finish(spec, s, pieces, expected, timer, progress):
+def _finish(spec, s, pieces, expected, timer, progress, workers=None):
     """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the build's
     own checks on exactly that -> Stages with pieces, poses, labels, checks. expected: mm^3 the pieces add up to
     before labels and base cuts take theirs."""
@@ -231,7 +247,7 @@ def _finish(spec, s, pieces, expected, timer, progress):
     labels, engraved = {}, 0.0
     if spec.output.labels:
         with timer("label", progress):
-            pieces, labels, engraved = label_pieces(s.tiling, s.fmap, pieces, s.joints, poses)
+            pieces, labels, engraved = label_pieces(s.tiling, s.fmap, pieces, s.joints, poses, workers=workers)
     with timer("layout", progress):
         pieces, cut = base_cuts(pieces, poses)
     if spec.output.labels:

@@ -12,17 +12,23 @@ class Pieces(list):
     seconds = None
 
 
-def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None, face_clearance=0.0):
+def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=None, face_clearance=0.0, workers=None):
     """Every cell -> Piece, in cell-index order (a list, with .sampling and .seconds). jobs > 1 builds in a process
     pool when the work is large enough to pay for one (same results as jobs=1); progress(i, n, piece_id) is called
     as pieces finish. Pass `sampling` to reuse one from sample_parameters. face_clearance (mm): the gap left
-    between mating cut faces, half on each side."""
+    between mating cut faces, half on each side. workers: the build's volpuzzle.workers.Workers, used whatever
+    the estimate (its start-up is paid already)."""
     sampling = sampling if sampling is not None else sample_parameters(tiling, fmap, tolerance)
     order = sorted(tiling.cells)
     n = len(order)
     job = BuildJob(tiling, sampling, fmap, list(joints or []), face_clearance)
-    if use_pool(jobs, n, sampling, job.joints):
-        records = build_pooled(order, int(jobs), job, progress)
+    if workers is not None and n > 1:
+        records = build_pooled(order, workers, job, progress)
+    elif use_pool(jobs, n, sampling, job.joints):
+        from ..workers import Workers
+
+        with Workers(int(jobs)) as own:
+            records = build_pooled(order, own, job, progress)
     else:
         records = {}
         for k, index in enumerate(order):

@@ -1,0 +1,263 @@
+"""One pool of worker processes for a whole build, shared by its per-piece stages (compose, label, ...).
+
+Why one pool, started first. A spawned worker costs ~2.5 s of CPU (a fresh interpreter importing numpy, trimesh,
+manifold3d and the stage modules) before it does any work. Started as the build starts, that start-up runs on the
+second core while this process imports, loads, verifies and plans the joints (~4 s for the twisted torus), so by
+the time the first per-piece stage runs the worker is warm; a pool per stage would pay the start-up again each time,
+in the critical path.
+
+Why spawn. manifold3d's and numba's thread pools are running in this process; a forked child would inherit their
+locks in whatever state they were (unsafe). Inside a daemonic process (a Dask worker) no pool is started: daemons
+may not have children, and the cluster already spreads the work.
+
+How work is shared (map_pieces). This process takes items from the front of the list while the workers take them
+from the back, two queued each, and only once a worker has started, so this process never waits for a start-up; an
+item still queued when the front reaches it is taken back. Every item goes through the same function wherever it
+runs, and the results come back in item order, so where an item ran never changes the result. The big inputs every
+item needs (`shared`: the tiling, the map, the joints) are pickled once into a file that each worker reads once
+(cached by token), not sent with every item.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import itertools
+import multiprocessing
+import os
+import pickle
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import GeometryError
+
+# A pool pays when the per-piece stages hold enough work to share out: the twisted torus of 32 pieces spends ~9 CPU s
+# in compose, label, check, assembly and export, the 8-piece quarter torus ~2 s, less than a worker's start-up.
+MIN_PIECES = 16
+_MAIN_TAKES_ITEMS = True  # False: the workers run every item (tests use it to see them do so)
+_QUEUED_PER_WORKER = 2  # one running, one waiting, so that a worker never idles while this process is busy
+
+
+def wanted(jobs: int | None, pieces: int) -> bool:
+    """Whether a build of `pieces` pieces with `jobs` processes starts a pool: more than one job, enough pieces for
+    the start-up to pay, and not inside a daemonic process (a Dask worker), which may not start children."""
+    if jobs is None or jobs <= 1 or pieces < MIN_PIECES:
+        return False
+    return not multiprocessing.current_process().daemon
+
+
+@dataclass(frozen=True)
+class _Handle:
+    """A shared input as the workers see it: its token and the file that holds it pickled."""
+
+    token: int
+    path: str
+
+
+_CACHE: dict[int, object] = {}  # in a worker: the shared inputs read so far, by token (the last two are kept)
+
+
+def _init_worker():
+    # Ctrl-C reaches the whole process group: this process handles it (and ends the workers), a worker would only
+    # print a traceback
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _warm() -> int:
+    """The first task of each worker: what every stage loads on first use, done before any item arrives (while this
+    process is still loading and planning), so that a worker's first piece costs what the others do. -> pid"""
+    import manifold3d  # noqa: F401
+    import trimesh  # noqa: F401
+
+    from . import check, compose, export, label  # noqa: F401
+    from .spline.volume import Volume
+
+    # numba's one-off set-up (~0.7 s at the first compiled kernel it loads) and matplotlib's text outlines (~0.4 s)
+    knots = np.array([0.0, 0.0, 1.0, 1.0])
+    corners = np.stack(np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij"), axis=-1)
+    cube = Volume((1, 1, 1), (knots, knots, knots), corners, None)
+    cube.evaluate_with_derivatives(np.full((300, 3), 0.5))  # more points than volume._TINY: the compiled path
+    label.min_height_mm("p0-0-0")
+    return os.getpid()
+
+
+def _shared(handle: _Handle | None):
+    if handle is None:
+        return None
+    if handle.token not in _CACHE:
+        with open(handle.path, "rb") as f:
+            obj = pickle.load(f)
+        for old in sorted(_CACHE)[:-1]:  # the stages run one after another: older inputs are done with
+            del _CACHE[old]
+        _CACHE[handle.token] = obj
+    return _CACHE[handle.token]
+
+
+def _run(fn, handle, item):
+    return fn(_shared(handle), item)
+
+
+class Workers:
+    """jobs - 1 spawned worker processes and this one. Use as a context manager, or call close()."""
+
+    def __init__(self, jobs: int):
+        self.size = int(jobs) - 1
+        ctx = multiprocessing.get_context("spawn")
+        self._executor = concurrent.futures.ProcessPoolExecutor(max_workers=self.size, mp_context=ctx,
+                                                               initializer=_init_worker)
+        # one warm-up per worker: the pool starts them one by one as tasks arrive
+        self._started = [self._executor.submit(_warm) for _ in range(self.size)]
+        self._tokens = itertools.count(1)
+        self._dir = None
+        self._busy = set()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @property
+    def started(self) -> int:
+        """How many workers have finished starting (and can take items without keeping this process waiting)."""
+        return sum(1 for f in self._started if f.done() and f.exception() is None)
+
+    def _failed_start(self):
+        errors = [f.exception() for f in self._started if f.done() and f.exception() is not None]
+        return errors[0] if errors and len(errors) == len(self._started) else None
+
+    def _handle(self, obj):
+        """obj pickled once into the pool's folder -> _Handle."""
+        if self._dir is None:
+            self._dir = tempfile.mkdtemp(prefix="volpuzzle-workers-")
+        token = next(self._tokens)
+        handle = _Handle(token, os.path.join(self._dir, f"shared-{token}.pickle"))
+        with open(handle.path + ".tmp", "wb") as f:
+            pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(handle.path + ".tmp", handle.path)
+        return handle
+
+    def map_pieces(self, fn: Callable, items: Sequence, shared=None, what: str = "a stage",
+                   done: Callable | None = None) -> list:
+        """[fn(shared, item) for item in items], run here and in the workers together, in item order. fn must be a
+        module-level function (the workers import it by name). done(count, result) is called as each item
+        finishes, in the order they finish. A VolpuzzleError inside fn is raised here as it was raised there; a
+        worker that dies gives a GeometryError naming `what` and the item."""
+        n = len(items)
+        results: list = [None] * n
+        finished = [False] * n
+        pending = list(range(n))
+        running: dict[concurrent.futures.Future, int] = {}
+        handle = None
+        count = 0
+
+        def record(k, value):
+            nonlocal count
+            results[k], finished[k] = value, True
+            count += 1
+            if done is not None:
+                done(count, value)
+
+        def collect(fut):
+            k = running.pop(fut)
+            self._busy.discard(fut)
+            try:
+                value = fut.result()
+            except concurrent.futures.process.BrokenProcessPool as e:
+                raise GeometryError(f"{what}: a worker process died while working on item {k + 1} of {n} ({e}); "
+                                    f"try --jobs 1") from e
+            record(k, value)
+
+        while pending or running:
+            for fut in [f for f in running if f.done()]:
+                collect(fut)
+            # the last pending item is this process's own, so it never idles while the workers start
+            while (pending[_MAIN_TAKES_ITEMS:] and self.started
+                   and len(running) < _QUEUED_PER_WORKER * self.started):
+                if handle is None and shared is not None:
+                    handle = self._handle(shared)
+                k = pending.pop()
+                try:
+                    fut = self._executor.submit(_run, fn, handle, items[k])
+                except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+                    pending.append(k)  # a broken pool: the rest is done here
+                    break
+                running[fut] = k
+                self._busy.add(fut)
+            if _MAIN_TAKES_ITEMS:
+                if pending:
+                    k = pending.pop(0)
+                    record(k, fn(shared, items[k]))
+                    continue
+                # nothing left here: take back what no worker has started
+                back = [f for f in running if f.cancel()]
+                for f in back:
+                    self._busy.discard(f)
+                pending += sorted(running.pop(f) for f in back)
+                if pending:
+                    continue
+            if not (pending or running):
+                break
+            if not running:
+                error = self._failed_start()
+                if error is not None:  # items left that only workers take, and no worker could start
+                    raise GeometryError(f"{what}: the worker processes did not start ({error}); try --jobs 1")
+            concurrent.futures.wait(list(running) or [f for f in self._started if not f.done()] or self._started,
+                                    return_when=concurrent.futures.FIRST_COMPLETED)
+        assert all(finished)
+        return results
+
+    def submit(self, fn: Callable, *args) -> concurrent.futures.Future | None:
+        """fn(*args) in a worker that has started -> its Future, or None when none has (do it here then)."""
+        if not self.started:
+            return None
+        try:
+            fut = self._executor.submit(fn, *args)
+        except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+            return None
+        self._busy.add(fut)
+        fut.add_done_callback(self._busy.discard)
+        return fut
+
+    def close(self):
+        """Shut the pool without waiting: idle workers exit on their own; a worker still starting or still running
+        a task (an interrupted build) is terminated, so that the CLI never waits for it at exit."""
+        busy = [f for f in self._started if not f.done()] + [f for f in self._busy if not f.done()]
+        processes = list((getattr(self._executor, "_processes", None) or {}).values())
+        self._executor.shutdown(wait=False, cancel_futures=True)
+        if busy:
+            for p in processes:
+                if p.is_alive():
+                    p.terminate()
+        if self._dir is not None:
+            shutil.rmtree(self._dir, ignore_errors=True)
+            self._dir = None
+
+
+def start(jobs: int | None, pieces: int) -> Workers | None:
+    """A pool for a build of `pieces` pieces with `jobs` processes, or None when one would not pay (see wanted)."""
+    return Workers(jobs) if wanted(jobs, pieces) else None
+
+
+class MeshRef:
+    """A trimesh.Trimesh that travels to and from a worker as its two arrays (vertices (n, 3), faces (m, 3)) rather
+    than with its caches; in this process it is the mesh itself, so what is remembered of it (geometry.memo) stays."""
+
+    __slots__ = ("mesh",)
+
+    def __init__(self, mesh):
+        self.mesh = mesh
+
+    def __reduce__(self):
+        return _mesh_ref, (self.mesh.vertices.view(np.ndarray), self.mesh.faces.view(np.ndarray))
+
+
+def _mesh_ref(vertices, faces):
+    import trimesh
+
+    return MeshRef(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
