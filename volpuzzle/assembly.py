@@ -802,7 +802,8 @@ _POOL_MIN_PIECES = 96
 _REMOTE_MIN_PIECES = 16  # a smaller block is quicker taken apart here than shipped to a worker
 
 
-def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True, jobs=1):
+def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True, jobs=1,
+                       workers=None):
     """Replay the plan on the real meshes -> dict.
 
     pieces: {id: trimesh mesh in mm} (or a list of compose.Piece); joints: volpuzzle.joint.Joint list (the ones built);
@@ -816,7 +817,8 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     faces is welded).
     jobs > 1 (and at least _POOL_MIN_PIECES pieces): once a block has come apart, its moving part is taken apart in
     one of jobs - 1 spawned worker processes while this one takes the fixed part apart. A block's replay depends only
-    on its own pieces, so the result is the same wherever it runs.
+    on its own pieces, so the result is the same wherever it runs. workers: the build's volpuzzle.workers.Workers,
+    used instead of a pool of its own whatever the number of pieces (its start-up is paid already).
     """
     t0 = time.perf_counter()
     if not isinstance(pieces, dict):
@@ -825,22 +827,23 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     if fine is None:
         lengths = [float(j.length) for j in joints] or [2.0]
         fine = max(0.25, min(1.0, min(lengths) / 3.0))
-    pool = None
-    if jobs is not None and jobs > 1 and len(pieces) >= _POOL_MIN_PIECES:
+    pool, own = workers, False
+    if pool is None and jobs is not None and jobs > 1 and len(pieces) >= _POOL_MIN_PIECES:
         import concurrent.futures
         import multiprocessing
 
         # spawn, never fork: manifold3d's and numba's thread pools are running in this process
         pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1,
                                                       mp_context=multiprocessing.get_context("spawn"))
+        own = True
         for _ in range(jobs - 1):
             pool.submit(_warm_worker)  # imports while this process sweeps the first split
+    free = 0 if pool is None else workers.size if workers is not None else jobs - 1
     try:
-        replay = _Replay(_Scene(pieces), joints, plan, limit_frac, fine, max_tries, groups, pool,
-                         (jobs - 1) if pool is not None else 0)
+        replay = _Replay(_Scene(pieces), joints, plan, limit_frac, fine, max_tries, groups, pool, free)
         steps = replay.take_apart([replay.cell_of[pid] for pid in replay.scene.ids])
     finally:
-        if pool is not None:
+        if own:
             pool.shutdown(wait=False, cancel_futures=True)
     order = []
     for s in steps:
@@ -944,6 +947,8 @@ class _Replay:
                                    self.max_tries, self.groups, list(block))
         except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
             return None
+        if fut is None:  # the build's workers have not started yet
+            return None
         self.free -= 1
         return fut
 
@@ -1044,16 +1049,16 @@ def bend_grid(tiling, fmap, max_bend_deg=MAX_BEND_DEG, lines=3, samples=16):
     return tuple(out) if out != grid else None
 
 
-def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1, tiling=None, fmap=None):
-    """Disassembly replayed on the real meshes, reversed (jobs: see verify_disassembly). -> dict with assembly_order,
-    steps, words, welded, stuck.
+def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1, tiling=None, fmap=None, workers=None):
+    """Disassembly replayed on the real meshes, reversed (jobs, workers: see verify_disassembly). -> dict with
+    assembly_order, steps, words, welded, stuck.
     A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning); with tiling and fmap
     the message names the grid at which no cell bends more than a half turn (bend_grid), when that is another."""
     import sys
 
     if plan is None:
         return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
-    res = verify_disassembly(pieces, joints, plan, jobs=jobs)
+    res = verify_disassembly(pieces, joints, plan, jobs=jobs, workers=workers)
     if res["welded"]:
         stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
         if "welded" not in tuple(allow):

@@ -1,0 +1,165 @@
+"""The build's worker pool: results in item order and the same wherever an item ran, the shared input read once per
+worker, errors keeping their kind and message, a dead worker as one GeometryError, no pool where it cannot pay or
+must not start, no wait at close; and a whole build byte-identical with --jobs 1 and --jobs 2."""
+
+import hashlib
+import json
+import multiprocessing
+import os
+import time
+
+import numpy as np
+import pytest
+import trimesh
+from helpers_build import write_spec
+
+import volpuzzle
+from volpuzzle import workers as W
+from volpuzzle.errors import GeometryError, SpecError
+
+
+def _square_plus(shared, item):
+    return os.getpid(), id(shared), item * item + shared["offset"]
+
+
+def _fails_on_three(shared, item):
+    if item == 3:
+        raise SpecError("grid: item three is refused (got 3, expected anything else)")
+    return item
+
+
+def _dies_on_two(shared, item):
+    if item == 2 and multiprocessing.parent_process() is not None:
+        os._exit(3)
+    return item
+
+
+def _mesh_volume(shared, ref):
+    return W.MeshRef(ref.mesh.copy()), float(ref.mesh.volume)
+
+
+@pytest.fixture(scope="module")
+def pool():
+    with W.Workers(2) as workers:
+        deadline = time.monotonic() + 120
+        while not workers.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert workers.started == 1
+        yield workers
+
+
+@pytest.mark.parametrize("main_takes", [False, True])
+def test_results_come_in_item_order_and_the_shared_input_travels_once(pool, monkeypatch, main_takes):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
+    shared = {"offset": 7, "ballast": np.arange(10_000)}
+    seen = []
+    out = pool.map_pieces(_square_plus, list(range(12)), shared=shared, what="test",
+                          done=lambda k, r: seen.append(k))
+    assert [r[2] for r in out] == [k * k + 7 for k in range(12)]
+    assert seen == list(range(1, 13))
+    elsewhere = [r for r in out if r[0] != os.getpid()]
+    assert elsewhere, "no item ran in the worker"
+    assert len({r[1] for r in elsewhere}) == 1  # one unpickled copy of the shared input in the worker
+    if not main_takes:
+        assert len(elsewhere) == 12
+
+
+def test_meshes_travel_as_arrays_and_come_back_equal(pool, monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    boxes = [trimesh.creation.box(extents=(1.0 + k, 2.0, 3.0)) for k in range(3)]
+    out = pool.map_pieces(_mesh_volume, [W.MeshRef(b) for b in boxes], what="test")
+    for box, (ref, volume) in zip(boxes, out, strict=True):
+        assert np.array_equal(ref.mesh.vertices, box.vertices) and np.array_equal(ref.mesh.faces, box.faces)
+        assert volume == pytest.approx(box.volume)
+
+
+def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    with pytest.raises(SpecError, match=r"^grid: item three is refused \(got 3, expected anything else\)$"):
+        pool.map_pieces(_fails_on_three, list(range(6)), what="test")
+
+
+@pytest.mark.slow
+def test_a_worker_that_dies_gives_one_geometry_error(monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    with W.Workers(2) as workers, pytest.raises(GeometryError, match=r"^label: a worker process died .*try --jobs 1"):
+        workers.map_pieces(_dies_on_two, list(range(5)), what="label")
+
+
+def test_a_pool_only_where_it_pays_and_may_start():
+    assert not W.wanted(1, 1000)  # one job: everything here
+    assert not W.wanted(2, W.MIN_PIECES - 1)  # too little work for a worker's start-up
+    assert W.wanted(2, W.MIN_PIECES)
+    assert W.start(1, 1000) is None
+
+
+def _wanted_in_a_daemon(queue):
+    queue.put(W.wanted(4, 1000))
+
+
+def test_no_pool_inside_a_daemonic_process():
+    # a Dask worker process is daemonic (and batch passes jobs=1 anyway): daemons may not have children
+    ctx = multiprocessing.get_context("spawn")
+    queue = ctx.Queue()
+    p = ctx.Process(target=_wanted_in_a_daemon, args=(queue,), daemon=True)
+    p.start()
+    assert queue.get(timeout=60) is False
+    p.join(30)
+
+
+def test_close_does_not_wait_for_a_starting_worker():
+    workers = W.Workers(2)
+    processes = list(workers._executor._processes.values())
+    t0 = time.perf_counter()
+    workers.close()
+    assert time.perf_counter() - t0 < 1.0
+    for p in processes:
+        p.join(10)
+        assert not p.is_alive()
+
+
+def _small_spec(tmp_path):
+    spec = {
+        "name": "box",
+        "model": {"builtin": {"type": "quarter-torus", "major_radius": 50, "minor_radius": 20}},
+        "grid": [2, 1, 2],
+        "randomize": {"seed": 5, "amplitude": 0.2, "control_points": 5},
+        "output": {"directory": str(tmp_path / "out"), "tolerance": 0.8},
+    }
+    return write_spec(tmp_path, spec)
+
+
+def _without_times(x):
+    if isinstance(x, dict):
+        return {k: _without_times(v) for k, v in x.items() if not (k.endswith("_s") or k == "seconds")}
+    if isinstance(x, list):
+        return [_without_times(v) for v in x]
+    return x
+
+
+@pytest.mark.slow
+def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
+    # the pool forced on below its threshold, and the workers given every item they can take
+    monkeypatch.setattr(W, "MIN_PIECES", 0)
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    used = []
+    original = W.Workers.map_pieces
+
+    def counted(self, fn, items, **kw):
+        used.append(kw.get("what"))
+        return original(self, fn, items, **kw)
+
+    monkeypatch.setattr(W.Workers, "map_pieces", counted)
+    spec = _small_spec(tmp_path)
+    files, reports, md = {}, {}, {}
+    root = tmp_path / "out"
+    for jobs in (1, 2):  # into the same folder, so that the reports name the same one
+        volpuzzle.build(spec, jobs=jobs, force=True)
+        files[jobs] = {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+                       for p in sorted(root.rglob("*")) if p.is_file() and p.name not in ("report.json", "report.md")}
+        reports[jobs] = _without_times(json.loads((root / "report.json").read_text()))
+        md[jobs] = (root / "report.md").read_text().split("## Timings")[0]
+    assert {"compose", "label"} <= set(used)
+    assert files[1] == files[2] and any(f.startswith("pieces/") for f in files[1])
+    assert reports[1] == reports[2]
+    assert md[1] == md[2]
