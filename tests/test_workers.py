@@ -22,19 +22,19 @@ def _square_plus(shared, item):
     return os.getpid(), id(shared), item * item + shared["offset"]
 
 
-def _fails_on_three(shared, item):
+def _fails_on_three(_shared, item):
     if item == 3:
         raise SpecError("grid: item three is refused (got 3, expected anything else)")
     return item
 
 
-def _dies_on_two(shared, item):
+def _dies_on_two(_shared, item):
     if item == 2 and multiprocessing.parent_process() is not None:
         os._exit(3)
     return item
 
 
-def _mesh_volume(shared, ref):
+def _mesh_volume(_shared, ref):
     return W.MeshRef(ref.mesh.copy()), float(ref.mesh.volume)
 
 
@@ -54,7 +54,7 @@ def test_results_come_in_item_order_and_the_shared_input_travels_once(pool, monk
     shared = {"offset": 7, "ballast": np.arange(10_000)}
     seen = []
     out = pool.map_pieces(_square_plus, list(range(12)), shared=shared, what="test",
-                          done=lambda k, r: seen.append(k))
+                          done=lambda k, _r: seen.append(k))
     assert [r[2] for r in out] == [k * k + 7 for k in range(12)]
     assert seen == list(range(1, 13))
     elsewhere = [r for r in out if r[0] != os.getpid()]
