@@ -22,6 +22,7 @@ import trimesh
 
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import DEFAULT_ACCENT, write_3mf
+from .workers import Remote, write_remote
 
 __all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md",
            "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries",
@@ -545,7 +546,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
                 dowels: Sequence = (), colors: np.ndarray | None = None,
                 extras: Mapping[str, Callable[[Path], None]] | None = None,
                 pin_triangles: Mapping[str, np.ndarray] | None = None,
-                triangle_colors: Mapping[str, np.ndarray] | None = None) -> Path:
+                triangle_colors: Mapping[str, np.ndarray] | None = None, workers=None) -> Path:
     """Write the output folder (SPEC section 5) atomically -> the target path.
 
     pieces: compose.Piece objects or (id, trimesh) pairs, in mm. dowels: (name, trimesh) pairs.
@@ -553,6 +554,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     files produced elsewhere (plates, preview), called inside the temporary folder. pin_triangles: {piece id:
     (m,) 0/1 per triangle}, 1 on a pin: 3MF files give those triangles the second (pin) material. triangle_colors:
     {piece id: (m, 3) per-triangle colours, -1 rows where the piece colour stays} (a texture), for 3MF files.
+    workers: a volpuzzle.workers.Workers that draws the extras given as workers.Remote (the pictures) meanwhile.
     Raises ExportError when the target exists without force, or on any failed write.
     """
     t0 = time.perf_counter()
@@ -610,6 +612,17 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     try:
         report = dict(report)
         (tmp / "pieces").mkdir()
+        # the pictures, drawn in a worker while this process writes the rest (the same functions on the same data);
+        # of several, this process draws the first itself once the pieces are written, so that neither waits long
+        remote = [(w, tmp / rel) for rel, w in sorted((extras or {}).items())
+                  if workers is not None and isinstance(w, Remote)]
+        remote = remote[len(remote) > 1:]
+        for _, dest in remote:
+            dest.parent.mkdir(parents=True, exist_ok=True)
+        drawing = write_remote(workers, remote)
+        if drawing is not None:
+            pending.append(drawing)
+            extras = {rel: w for rel, w in extras.items() if not any(w is r for r, _ in remote)}
         # the largest file first, so that the worker is busy from the start
         write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
               [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors, strict=True)],

@@ -494,7 +494,7 @@ def print_entry(piece, pose, placement):
 def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
     from .io.threemf import write_3mf
-    from .preview import plan_offsets, render_preview
+    from .workers import MeshRef, Remote
 
     pin_dirs, openings = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
@@ -515,32 +515,46 @@ def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=
             write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
                       colors=None if texture is None else [texture.get(o[0]) for o in objs])
         extras[pl.file] = write_plate
-    if texture is not None:
-        from .texture import face_colors
-
-    def write_preview(path):
-        # pins a shade darker than their piece, so that they stand out
-        shaded = []
-        for p, c in zip(pieces, colors, strict=True):
-            flag = (pins or {}).get(p.id)
-            if texture is None and flag is None:
-                shaded.append(np.asarray(c, np.uint8))
-                continue
-            tri = (np.array(face_colors(c, texture[p.id]), np.uint8) if texture is not None
-                   else np.tile(np.asarray(c, np.uint8), (len(p.mesh.faces), 1)))
-            if flag is not None:
-                tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
-            shaded.append(tri)
-        index = {p.id: k for k, p in enumerate(pieces)}
-        on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
-        offsets = plan_offsets([p.mesh for p in pieces], [p.id for p in pieces], steps) if steps else None
-        render_preview(path, [p.mesh for p in pieces], shaded, title=spec.name, offsets=offsets,
-                       plate=(on_plate, tuple(spec.output.plate)))
-
-    extras["preview.png"] = write_preview
+    # the pictures as plain functions of plain data (workers.Remote), which the export may draw in a worker while
+    # this process writes the pieces
+    refs = [MeshRef(p.mesh) for p in pieces]
+    names = [p.id for p in pieces]
+    index = {p.id: k for k, p in enumerate(pieces)}
+    on_plate = [(index[pl.name], pl.transform) for pl in placements if pl.plate == 1 and pl.name in index]
+    extras["preview.png"] = Remote(_write_preview, refs, names, np.asarray(colors), pins, texture, on_plate,
+                                   tuple(spec.output.plate), spec.name, steps)
     if steps:
-        from .preview import render_steps
-
-        extras["steps"] = lambda path: render_steps(path, [p.mesh for p in pieces], [p.id for p in pieces],
-                                                    colors, steps)
+        extras["steps"] = Remote(_write_steps, refs, names, colors, steps)
     return placements, plates, extras
+
+
+def _write_preview(path, refs, names, colors, pins, texture, on_plate, plate, title, steps):
+    """preview.png of the pieces (workers.MeshRef, in mm): the puzzle pulled apart along its plan, its first plate."""
+    from .preview import plan_offsets, render_preview
+
+    meshes = [r.mesh for r in refs]
+    # pins a shade darker than their piece, so that they stand out
+    shaded = []
+    for pid, mesh, c in zip(names, meshes, colors, strict=True):
+        flag = (pins or {}).get(pid)
+        if texture is None and flag is None:
+            shaded.append(np.asarray(c, np.uint8))
+            continue
+        if texture is not None:
+            from .texture import face_colors
+
+            tri = np.array(face_colors(c, texture[pid]), np.uint8)
+        else:
+            tri = np.tile(np.asarray(c, np.uint8), (len(mesh.faces), 1))
+        if flag is not None:
+            tri[flag.astype(bool)] = (tri[flag.astype(bool)] * 0.55).astype(np.uint8)
+        shaded.append(tri)
+    offsets = plan_offsets(meshes, names, steps) if steps else None
+    render_preview(path, meshes, shaded, title=title, offsets=offsets, plate=(on_plate, tuple(plate)))
+
+
+def _write_steps(path, refs, names, colors, steps):
+    """One picture per assembly step into the folder `path` (preview.render_steps)."""
+    from .preview import render_steps
+
+    render_steps(path, [r.mesh for r in refs], names, colors, steps)

@@ -170,7 +170,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     with timer("export", progress):
         report["timings_s"] = timer.timings
         write_build(target, s.pieces, report, fmt=spec.output.format, force=force, dowels=dowels, colors=colors,
-                    extras=extras, pin_triangles=pins, triangle_colors=texture)
+                    extras=extras, pin_triangles=pins, triangle_colors=texture, workers=workers)
     report["timings_s"] = dict(timer.timings, total=round(time.perf_counter() - t_start, 3))
     progress.done()
     return report

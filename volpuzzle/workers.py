@@ -74,7 +74,7 @@ def _warm() -> int:
     import manifold3d  # noqa: F401
     import trimesh  # noqa: F401
 
-    from . import check, compose, export, label  # noqa: F401
+    from . import assembly, check, compose, export, label, preview  # noqa: F401
     from .spline.volume import Volume
 
     # numba's one-off set-up (~0.7 s at the first compiled kernel it loads) and matplotlib's text outlines (~0.4 s)
@@ -261,3 +261,30 @@ def _mesh_ref(vertices, faces):
     import trimesh
 
     return MeshRef(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
+
+
+class Remote:
+    """A writer, fn(path, *args), that may run in a worker: fn is a module-level function and args plain data
+    (meshes as MeshRef), so that it pickles. Called here, it is just fn(path, *args)."""
+
+    __slots__ = ("fn", "args")
+
+    def __init__(self, fn: Callable, *args):
+        self.fn, self.args = fn, args
+
+    def __call__(self, path):
+        return self.fn(path, *self.args)
+
+
+def _run_all(calls):
+    """Several Remote writers in one task: pickled together, the meshes they share travel (and are remembered) once."""
+    for writer, path in calls:
+        writer(path)
+
+
+def write_remote(workers: Workers | None, calls: list) -> concurrent.futures.Future | None:
+    """[(Remote, path)] written in a worker, as one task -> its Future; None when there is no started worker (the
+    caller writes them itself)."""
+    if workers is None or not calls:
+        return None
+    return workers.submit(_run_all, calls)
