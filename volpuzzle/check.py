@@ -138,14 +138,15 @@ def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: i
 
 def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
                  volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3,
-                 exact_overlaps: bool = False) -> dict:
+                 exact_overlaps: bool = False, workers=None) -> dict:
     """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
 
     Keys: all_closed, closed_failures (ids), volume_sum_mm3, expected_volume_mm3, volume_error (relative,
     signed), volume_tolerance, max_overlap_mm3, max_overlap_pair, overlap_limit_mm3 (overlap_fraction of the
     smallest piece's volume), overlap_error_bound_mm3, overlap_pairs_tested, overlap_time_s, failures
     (sentences), passed. Overlaps are measured for pairs whose boxes share more than the limit, with one
-    piece shifted by a hair (see shifted_overlap; error bound 1% of the limit) unless exact_overlaps.
+    piece shifted by a hair (see shifted_overlap; error bound 1% of the limit) unless exact_overlaps. workers: a
+    volpuzzle.workers.Workers that measures some of the pairs (the same figures).
     """
     ids = [str(p[0]) for p in pieces]
     meshes = [p[1] for p in pieces]
@@ -173,18 +174,22 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
         bounds = np.array([meshes[k].bounds for k in good])
         pairs = candidate_pairs(bounds, min_common_volume=limit)
         solids = {}
+        measured = []
         for a, b in pairs:
             for k in (a, b):
                 if k not in solids:
                     solids[k] = piece_solid(meshes[good[k]], ids[good[k]])
                     if isinstance(solids[k], str):
                         failures.append(f"{solids[k]}; its overlaps were not measured")
-            if isinstance(solids[a], str) or isinstance(solids[b], str):
-                continue
-            if exact_overlaps:
-                v, bound = overlap_volume(solids[a], solids[b]), 0.0
-            else:
-                v, bound = shifted_overlap(solids[a], solids[b], 0.01 * limit)
+            if not (isinstance(solids[a], str) or isinstance(solids[b], str)):
+                measured.append((a, b))
+        from .workers import MeshRef
+
+        shared = ({k: (MeshRef(meshes[good[k]]), ids[good[k]]) for k in solids}, exact_overlaps, 0.01 * limit)
+        chunks = [measured[c:c + _PAIRS_PER_TASK] for c in range(0, len(measured), _PAIRS_PER_TASK)]
+        found = (workers.map_pieces(_overlaps, chunks, shared=shared, what="check") if workers is not None
+                 else [_overlaps(shared, chunk) for chunk in chunks])
+        for (a, b), (v, bound) in zip(measured, [r for chunk in found for r in chunk], strict=True):
             max_bound = max(max_bound, bound)
             tested += 1
             if v > max_overlap:
@@ -209,6 +214,20 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
         "failures": failures,
         "passed": not failures,
     }
+
+
+_PAIRS_PER_TASK = 12  # overlap pairs per worker task: ~50 ms, small enough that the two sides end together
+
+
+def _overlaps(shared, pairs):
+    """[(overlap mm^3, error bound)] of pairs (k, l) of check_pieces, wherever they are measured: shared ({k:
+    (MeshRef, piece id)}, exact, shift budget mm^3)."""
+    refs, exact, budget = shared
+    out = []
+    for a, b in pairs:
+        sa, sb = (piece_solid(refs[k][0].mesh, refs[k][1]) for k in (a, b))
+        out.append((overlap_volume(sa, sb), 0.0) if exact else shifted_overlap(sa, sb, budget))
+    return out
 
 
 def failure_message(checks: dict, what: str = "the build") -> str:

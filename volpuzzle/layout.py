@@ -456,10 +456,22 @@ def check_plate(spec, tiling, fmap):
                         f"[{np.ceil(need[0]):.0f}, {np.ceil(need[1]):.0f}])", source=spec.source)
 
 
-def plan_poses(pieces, joints):
-    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts."""
+def plan_poses(pieces, joints, workers=None):
+    """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts. workers: a
+    volpuzzle.workers.Workers that plans some of them (the same poses)."""
+    from .workers import MeshRef
+
     pins, openings = joint_directions(joints)
-    return {p.id: plan_pose(p.mesh, pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces}
+    items = [(MeshRef(p.mesh), pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces]
+    poses = (workers.map_pieces(_pose_one, items, what="layout") if workers is not None
+             else [_pose_one(None, item) for item in items])
+    return {p.id: pose for p, pose in zip(pieces, poses, strict=True)}
+
+
+def _pose_one(_shared, item):
+    """plan_pose of one item (MeshRef, pin directions, hole openings), wherever it runs."""
+    ref, pins, openings = item
+    return plan_pose(ref.mesh, pins, openings)
 
 
 def base_cuts(pieces, poses):

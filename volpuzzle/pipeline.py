@@ -243,7 +243,7 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
     from .layout import base_cuts, plan_poses
 
     with timer("layout", progress):
-        poses = plan_poses(pieces, s.joints)
+        poses = plan_poses(pieces, s.joints, workers=workers)
     labels, engraved = {}, 0.0
     if spec.output.labels:
         with timer("label", progress):
@@ -256,7 +256,7 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
         engraved += more
     with timer("check", progress):
         pieces = printable(pieces)
-        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut)
+        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
     checks["base_cuts_mm3"] = round(cut, 3)
     return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks)
 
