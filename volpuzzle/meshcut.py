@@ -730,17 +730,17 @@ def _contact_direction(a, b):
     return n / size if size > 0 else None
 
 
-def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_clearance=0.0):
+def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_clearance=0.0, workers=None):
     """Mesh mode: cage pieces without joints, each intersected with the mesh, fragments merged, joints placed on the
     final contacts, the faces between pieces set back by half of face_clearance each (set_back_faces), then pins and
     holes. -> (list of compose.Piece, joints, AssemblyPlan or None, report dict; its "face_clearance_mm3" is the
-    volume the clearance took)"""
+    volume the clearance took). workers: the build's volpuzzle.workers.Workers, shared by the cage's compose."""
     from .compose import Piece, compose
     from .geometry import from_trimesh, solid_of, to_trimesh
 
     tiling, model = stages.tiling, stages.model
     with timer("compose", progress):
-        bodies = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, progress=progress.piece)
+        bodies = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, progress=progress.piece, workers=workers)
         # Meshes often have vertices and edges exactly on a cage's mid-plane (a symmetric part centred in its cage).
         # The engine then splits the two sides by a perturbation that leaves them pinched along those edges, and
         # merging them welds a non-manifold solid. A shift far below print resolution moves them off the cuts.
@@ -762,7 +762,8 @@ def compose_in_mesh(stages, joint_spec, tolerance, jobs, timer, progress, face_c
         if face_clearance > 0:
             # the contacts, merges and joints above need the faces closed (they are found where pieces touch):
             # the faces are set back only now, before the pins and holes, which keep their own clearances
-            shrunk = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, face_clearance=face_clearance)
+            shrunk = compose(tiling, stages.fmap, [], tolerance, jobs=jobs, face_clearance=face_clearance,
+                             workers=workers)
             cut, taken = set_back_faces(cut, {p.id: from_trimesh(p.mesh, p.id) for p in bodies},
                                         {p.id: from_trimesh(p.mesh, p.id) for p in shrunk}, merges, face_clearance)
         jointed = add_joints(cut, cells, joints)

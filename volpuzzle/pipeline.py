@@ -199,11 +199,11 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
         from .meshcut import compose_in_mesh
 
         pieces, joints, plan, mesh_report = compose_in_mesh(s, spec.joints, tolerance, jobs, timer, progress,
-                                                            face_clearance=clearance)
+                                                            face_clearance=clearance, workers=workers)
         s = dataclasses.replace(s, joints=joints, plan=plan)
         gaps = sum(gap_volume(j) for j in joints)
         face_gaps = mesh_report.pop("face_clearance_mm3", 0.0)
-        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress)
+        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress, workers)
     else:
         gaps = sum(gap_volume(j) for j in s.joints)
         for attempt in range(3):
