@@ -86,6 +86,33 @@ def test_a_worker_that_dies_gives_one_geometry_error(monkeypatch):
         workers.map_pieces(_dies_on_two, list(range(5)), what="label")
 
 
+def _pid_and_square(x):
+    return os.getpid(), x * x
+
+
+def _sleep(seconds):
+    time.sleep(seconds)
+    return seconds
+
+
+def test_a_prefetch_runs_ahead_in_a_worker(pool):
+    ahead = pool.prefetch(_pid_and_square, 9)
+    deadline = time.monotonic() + 60
+    while not ahead._future.done() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    pid, value = ahead.result()
+    assert value == 81 and pid != os.getpid()
+
+
+def test_a_prefetch_no_worker_began_is_computed_here(pool):
+    busy = pool.submit(_sleep, 1.0)  # the one worker is busy: the prefetch waits in its queue
+    ahead = pool.prefetch(_pid_and_square, 5)
+    pid, value = ahead.result()  # asked for at once: claimed here, and the worker skips it later
+    assert value == 25 and pid == os.getpid()
+    assert busy.result() == 1.0
+    assert ahead._future.result() == (False, None)
+
+
 def test_a_pool_only_where_it_pays_and_may_start():
     assert not W.wanted(1, 1000)  # one job: everything here
     assert not W.wanted(2, W.MIN_PIECES - 1)  # too little work for a worker's start-up

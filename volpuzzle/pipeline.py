@@ -50,10 +50,12 @@ class Stages:
     tolerance: float = 0.0  # mm, the tessellation tolerance finally used (at most output.tolerance)
     face_clearance: float = 0.0  # mm, the gap between mating cut faces actually applied
     mesh_report: dict | None = None  # mesh mode: meshcut.compose_in_mesh's report
+    sampling: object = None  # workers.Prefetch of compose's Sampling at output.tolerance (begun while joints plan)
 
 
-def prepare(spec, timer=None, progress=None):
-    """Every stage up to joints, without meshes: what `validate` runs. -> Stages (pieces not yet built)"""
+def prepare(spec, timer=None, progress=None, workers=None):
+    """Every stage up to joints, without meshes: what `validate` runs. -> Stages (pieces not yet built). With
+    workers, a worker samples the cell faces for compose meanwhile (Stages.sampling)."""
     from .limits import check_model_limits, check_spec_limits
 
     check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
@@ -82,13 +84,18 @@ def prepare(spec, timer=None, progress=None):
             mass = mesh_mass(fmap, model.mesh)  # through the warp too: the cells are cut from the randomized cage
         tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
     check_grid_vs_tolerance(spec, tiling, fmap)
+    sampling = None
+    if workers is not None and model.mesh is None:  # the sampling needs no joints: a worker begins it now
+        from .compose import sample_parameters
+
+        sampling = workers.prefetch(sample_parameters, tiling, fmap, spec.output.tolerance)
     plan, joints, contacts = None, [], None
     if model.mesh is None:  # in mesh mode the joints go on the contacts of the final pieces, known after composing
         with timer("joint", progress):
             layout, plan = place_planned_joints(tiling, fmap, spec.joints)
         joints, contacts = list(layout.joints), list(layout.contacts)
     return Stages(model, tiling, fmap, joints, plan, contacts, model_report(model, model_check, all_seams),
-                  rand_report)
+                  rand_report, sampling=sampling)
 
 
 def _warp(spec, vol, seams, timer, progress):
@@ -142,7 +149,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     from .texture import build_texture
 
     timer = Timer()
-    s = prepare(spec, timer, progress)
+    s = prepare(spec, timer, progress, workers)
     check_plate(spec, s.tiling, s.fmap)
     s = _compose(spec, s, jobs, timer, progress, workers)
     require_pieces_joined(spec, s.pieces, s.joints, s.contacts or ())
@@ -208,8 +215,9 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
         gaps = sum(gap_volume(j) for j in s.joints)
         for attempt in range(3):
             with timer("compose", progress):
+                ahead = s.sampling.result() if attempt == 0 and s.sampling is not None else None
                 pieces = compose(s.tiling, s.fmap, s.joints, tolerance, jobs=jobs, progress=progress.piece,
-                                 face_clearance=clearance, workers=workers)
+                                 sampling=ahead, face_clearance=clearance, workers=workers)
             sampling = pieces.sampling  # the finishing stages return plain lists
             face_gaps = face_clearance_volume(sampling, clearance)
             done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress,

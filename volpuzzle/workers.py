@@ -69,21 +69,28 @@ def _init_worker():
 
 
 def _warm() -> int:
-    """The first task of each worker: what every stage loads on first use, done before any item arrives (while this
-    process is still loading and planning), so that a worker's first piece costs what the others do. -> pid"""
+    """The first task of each worker: what compose loads on first use (the first work a build gives a worker),
+    done before any item arrives, while this process is still loading and planning. -> pid"""
     import manifold3d  # noqa: F401
     import trimesh  # noqa: F401
 
-    from . import assembly, check, compose, export, label, preview  # noqa: F401
+    from . import compose  # noqa: F401
     from .spline.volume import Volume
 
-    # numba's one-off set-up (~0.7 s at the first compiled kernel it loads) and matplotlib's text outlines (~0.4 s)
+    # numba's one-off set-up, ~0.7 s at the first compiled kernel it loads
     knots = np.array([0.0, 0.0, 1.0, 1.0])
     corners = np.stack(np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij"), axis=-1)
     cube = Volume((1, 1, 1), (knots, knots, knots), corners, None)
     cube.evaluate_with_derivatives(np.full((300, 3), 0.5))  # more points than volume._TINY: the compiled path
-    label.min_height_mm("p0-0-0")
     return os.getpid()
+
+
+def _warm_rest():
+    """What the later stages load on first use (matplotlib's text outlines for the labels, ~0.4 s), queued behind
+    the first work a worker is given so as not to hold it up."""
+    from . import assembly, check, export, label, preview  # noqa: F401
+
+    label.min_height_mm("p0-0-0")
 
 
 def _shared(handle: _Handle | None):
@@ -115,6 +122,17 @@ class Workers:
         self._tokens = itertools.count(1)
         self._dir = None
         self._busy = set()
+        self._warmed_rest = False
+
+    def _warm_rest(self):
+        """_warm_rest once in each worker, queued behind whatever was submitted so far."""
+        if not self._warmed_rest:
+            self._warmed_rest = True
+            for _ in range(self.size):
+                try:
+                    self._executor.submit(_warm_rest)
+                except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+                    return
 
     def __enter__(self):
         return self
@@ -133,10 +151,8 @@ class Workers:
 
     def _handle(self, obj):
         """obj pickled once into the pool's folder -> _Handle."""
-        if self._dir is None:
-            self._dir = tempfile.mkdtemp(prefix="volpuzzle-workers-")
         token = next(self._tokens)
-        handle = _Handle(token, os.path.join(self._dir, f"shared-{token}.pickle"))
+        handle = _Handle(token, os.path.join(self._folder(), f"shared-{token}.pickle"))
         with open(handle.path + ".tmp", "wb") as f:
             pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(handle.path + ".tmp", handle.path)
@@ -148,6 +164,7 @@ class Workers:
         module-level function (the workers import it by name). done(count, result) is called as each item
         finishes, in the order they finish. A VolpuzzleError inside fn is raised here as it was raised there; a
         worker that dies gives a GeometryError naming `what` and the item."""
+        self._warm_rest()
         n = len(items)
         results: list = [None] * n
         finished = [False] * n
@@ -224,6 +241,16 @@ class Workers:
         fut.add_done_callback(self._busy.discard)
         return fut
 
+    def prefetch(self, fn: Callable, *args) -> Prefetch:
+        """fn(*args) started in a worker now (queued behind its start-up if need be), for a result wanted later:
+        Prefetch.result() gives it, or computes it here when no worker has begun it by then."""
+        return Prefetch(self, fn, args)
+
+    def _folder(self):
+        if self._dir is None:
+            self._dir = tempfile.mkdtemp(prefix="volpuzzle-workers-")
+        return self._dir
+
     def close(self):
         """Shut the pool without waiting: idle workers exit on their own; a worker still starting or still running
         a task (an interrupted build) is terminated, so that the CLI never waits for it at exit."""
@@ -237,6 +264,49 @@ class Workers:
         if self._dir is not None:
             shutil.rmtree(self._dir, ignore_errors=True)
             self._dir = None
+
+
+def _claim(path: str) -> bool:
+    """True for the first process to claim `path` (a file created exclusively), False for any later one."""
+    try:
+        os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return False
+    return True
+
+
+def _claimed_call(claim, fn, *args):
+    """In a worker: (True, fn(*args)), or (False, None) when this process has taken the work back already."""
+    return (True, fn(*args)) if _claim(claim) else (False, None)
+
+
+class Prefetch:
+    """A result computed ahead in a worker (Workers.prefetch). Whoever claims it first computes it: a worker when it
+    gets to the task, this process when it asks for the result before any worker began; the same function either
+    way, so the result does not depend on where it ran, and this process never waits for a worker's start-up."""
+
+    def __init__(self, workers: Workers, fn: Callable, args: tuple):
+        self._fn, self._args, self._what = fn, args, getattr(fn, "__name__", "a task")
+        self._claim = os.path.join(workers._folder(), f"claim-{next(workers._tokens)}")
+        try:
+            self._future = workers._executor.submit(_claimed_call, self._claim, fn, *args)
+        except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+            self._future = None
+        else:
+            workers._busy.add(self._future)
+            self._future.add_done_callback(workers._busy.discard)
+        workers._warm_rest()
+
+    def result(self):
+        if self._future is not None and (self._future.done() or not _claim(self._claim)):
+            try:
+                ran, value = self._future.result()
+            except concurrent.futures.process.BrokenProcessPool as e:
+                raise GeometryError(f"{self._what}: a worker process died while computing it ({e}); "
+                                    f"try --jobs 1") from e
+            if ran:
+                return value
+        return self._fn(*self._args)
 
 
 def start(jobs: int | None, pieces: int) -> Workers | None:
