@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 import trimesh
-from helpers_build import write_spec
+from helpers_build import example_spec
 
 import volpuzzle
 from volpuzzle import workers as W
@@ -145,17 +145,6 @@ def test_close_does_not_wait_for_a_starting_worker():
         assert not p.is_alive()
 
 
-def _small_spec(tmp_path):
-    spec = {
-        "name": "box",
-        "model": {"builtin": {"type": "quarter-torus", "major_radius": 50, "minor_radius": 20}},
-        "grid": [2, 1, 2],
-        "randomize": {"seed": 5, "amplitude": 0.2, "control_points": 5},
-        "output": {"directory": str(tmp_path / "out"), "tolerance": 0.8},
-    }
-    return write_spec(tmp_path, spec)
-
-
 def _without_times(x):
     if isinstance(x, dict):
         return {k: _without_times(v) for k, v in x.items() if not (k.endswith("_s") or k == "seconds")}
@@ -177,9 +166,10 @@ def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
         return original(self, fn, items, **kw)
 
     monkeypatch.setattr(W.Workers, "map_pieces", counted)
-    spec = _small_spec(tmp_path)
+    # the paper's quarter torus, randomized, in 2 x 1 x 2 coarse pieces
+    spec = example_spec("quarter-torus", tmp_path, tolerance=0.8, grid=[2, 1, 2])
     files, reports, md = {}, {}, {}
-    root = tmp_path / "out"
+    root = tmp_path / "out" / "quarter-torus"
     for jobs in (1, 2):  # into the same folder, so that the reports name the same one
         volpuzzle.build(spec, jobs=jobs, force=True)
         files[jobs] = {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
