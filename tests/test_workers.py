@@ -19,6 +19,7 @@ from volpuzzle.errors import GeometryError, SpecError
 
 
 def _square_plus(shared, item):
+    time.sleep(shared.get("pause", 0.0))  # an item that takes as long as a piece, so that both sides get some
     return os.getpid(), id(shared), item * item + shared["offset"]
 
 
@@ -51,7 +52,7 @@ def pool():
 @pytest.mark.parametrize("main_takes", [False, True])
 def test_results_come_in_item_order_and_the_shared_input_travels_once(pool, monkeypatch, main_takes):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
-    shared = {"offset": 7, "ballast": np.arange(10_000)}
+    shared = {"offset": 7, "ballast": np.arange(10_000), "pause": 0.05}
     seen = []
     out = pool.map_pieces(_square_plus, list(range(12)), shared=shared, what="test",
                           done=lambda k, _r: seen.append(k))
@@ -62,6 +63,16 @@ def test_results_come_in_item_order_and_the_shared_input_travels_once(pool, monk
     assert len({r[1] for r in elsewhere}) == 1  # one unpickled copy of the shared input in the worker
     if not main_takes:
         assert len(elsewhere) == 12
+
+
+def test_this_process_never_waits_for_a_slow_worker(pool):
+    busy = pool.submit(_sleep, 2.0)  # the worker is held up (as on a machine busy with other work)
+    t0 = time.perf_counter()
+    out = pool.map_pieces(_square_plus, list(range(6)), shared={"offset": 1}, what="test")
+    assert time.perf_counter() - t0 < 1.5
+    assert [r[2] for r in out] == [k * k + 1 for k in range(6)]
+    assert {r[0] for r in out} == {os.getpid()}  # the items given to the worker were done here as well
+    assert busy.result() == 2.0
 
 
 def test_meshes_travel_as_arrays_and_come_back_equal(pool, monkeypatch):

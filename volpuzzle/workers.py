@@ -179,16 +179,20 @@ class Workers:
             if done is not None:
                 done(count, value)
 
+        def died(k, e):
+            return GeometryError(f"{what}: a worker process died while working on item {k + 1} of {n} ({e}); "
+                                 f"try --jobs 1")
+
         def collect(fut):
             k = running.pop(fut)
             try:
                 value = fut.result()
             except concurrent.futures.process.BrokenProcessPool as e:
-                raise GeometryError(f"{what}: a worker process died while working on item {k + 1} of {n} ({e}); "
-                                    f"try --jobs 1") from e
-            record(k, value)
+                raise died(k, e) from e
+            if not finished[k]:  # else this process did it too (below) and was first
+                record(k, value)
 
-        while pending or running:
+        while count < n:
             for fut in [f for f in running if f.done()]:
                 collect(fut)
             # the last pending item is this process's own, so it never idles while the workers start
@@ -199,9 +203,8 @@ class Workers:
                 k = pending.pop()
                 try:
                     fut = self._executor.submit(_run, fn, handle, items[k])
-                except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
-                    pending.append(k)  # a broken pool: the rest is done here
-                    break
+                except (RuntimeError, concurrent.futures.process.BrokenProcessPool) as e:
+                    raise died(k, e) from e
                 running[fut] = k
             if _MAIN_TAKES_ITEMS:
                 if pending:
@@ -213,7 +216,18 @@ class Workers:
                 pending += sorted(running.pop(f) for f in back)
                 if pending:
                     continue
-            if not (pending or running):
+                # The rest is queued in or running on the workers. Rather than idle (a worker on a busy machine can
+                # take many times as long), this process does the one given out last as well: it is the likeliest
+                # not begun, and the same function gives the same result, whichever finishes first.
+                left = sorted((k, f) for f, k in running.items() if not finished[k])
+                if left:
+                    k, fut = left[0]
+                    value = fn(shared, items[k])
+                    running.pop(fut)
+                    if not finished[k]:
+                        record(k, value)
+                    continue
+            if count == n:
                 break
             if not running:
                 error = self._failed_start()
