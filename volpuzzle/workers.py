@@ -264,10 +264,15 @@ class Workers:
         or running a task (an interrupted build) could take far longer. Nothing of theirs is needed any more, and
         the executor cleans up after workers that ended (its broken-pool path)."""
         processes = list((getattr(self._executor, "_processes", None) or {}).values())
+        manager = getattr(self._executor, "_executor_manager_thread", None)  # shutdown() forgets it
         self._executor.shutdown(wait=False, cancel_futures=True)
         for p in processes:
             if p.is_alive():
                 p.terminate()
+        # The executor's own thread then notices and cleans up (a few ms). Waiting for it here keeps it from
+        # closing its wake-up pipe while the interpreter's exit writes to it (an "Exception ignored" traceback).
+        if manager is not None:
+            manager.join(timeout=10.0)
         if self._dir is not None:
             shutil.rmtree(self._dir, ignore_errors=True)
             self._dir = None
