@@ -42,6 +42,11 @@ def closed_problem(mesh: trimesh.Trimesh):
     return _memo(mesh, "closed", lambda: _closed_problem(mesh))
 
 
+def remember_closed(mesh: trimesh.Trimesh, problem) -> None:
+    """closed_problem(mesh) as already found (in a worker, for a copy of the same arrays): the checks ask again."""
+    _memo(mesh, "closed", lambda: problem)
+
+
 def _closed_problem(mesh):
     if len(mesh.faces) == 0:
         return "no triangles"

@@ -703,30 +703,46 @@ def _move_into_place(tmp: Path, target: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def printable(pieces):
+def printable(pieces, workers=None):
     """Pieces exactly as STL and 3MF store them: float32 vertices. Rounding can merge the ends of micro-edges that
     booleans and tessellation leave; those edges are collapsed (exact duplicates merged, triangles that repeat a
-    vertex dropped) so the checks judge the very mesh that is written."""
+    vertex dropped) so the checks judge the very mesh that is written. workers: a volpuzzle.workers.Workers that
+    rounds some of them (the same meshes)."""
     import dataclasses
 
-    from .check import closed_problem, signed_volume
+    from .check import remember_closed
     from .errors import GeometryError
-    from .geometry import weld
+    from .workers import MeshRef
 
+    items = [MeshRef(p.mesh) for p in pieces]
+    done = (workers.map_pieces(_printable_one, items, what="check") if workers is not None
+            else [_printable_one(None, item) for item in items])
     out = []
-    for p in pieces:
-        # + 0 turns -0.0 into 0.0, so that equal coordinates have equal bytes; a byte-wise unique is ~3x faster
-        # than np.unique(axis=0)
-        v32 = np.ascontiguousarray(np.asarray(p.mesh.vertices, dtype=np.float32) + np.float32(0.0))
-        _, first, inverse = np.unique(v32.view(np.dtype((np.void, 12))).ravel(), return_index=True,
-                                      return_inverse=True)
-        v, f = weld(v32[first].astype(np.float64), inverse.reshape(-1)[p.mesh.faces], 0.0)
-        mesh = trimesh.Trimesh(v, f, process=False)
-        problem = closed_problem(mesh)
-        if problem:
+    for p, (ref, problem, volume) in zip(pieces, done, strict=True):
+        if problem:  # in piece order, whichever process found it
             raise GeometryError(_printable_problem(p, problem))
-        out.append(dataclasses.replace(p, mesh=mesh, volume=signed_volume(v, f), triangles=int(len(f))))
+        remember_closed(ref.mesh, problem)  # the checks ask again of this very mesh
+        out.append(dataclasses.replace(p, mesh=ref.mesh, volume=volume, triangles=int(len(ref.mesh.faces))))
     return out
+
+
+def _printable_one(_shared, ref):
+    """One piece of printable, wherever it runs: MeshRef -> (MeshRef of the float32 mesh, its closed_problem, its
+    signed volume mm^3)."""
+    from .check import closed_problem, signed_volume
+    from .geometry import weld
+    from .workers import MeshRef
+
+    mesh = ref.mesh
+    # + 0 turns -0.0 into 0.0, so that equal coordinates have equal bytes; a byte-wise unique is ~3x faster
+    # than np.unique(axis=0)
+    v32 = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float32) + np.float32(0.0))
+    _, first, inverse = np.unique(v32.view(np.dtype((np.void, 12))).ravel(), return_index=True,
+                                  return_inverse=True)
+    v, f = weld(v32[first].astype(np.float64), inverse.reshape(-1)[mesh.faces], 0.0)
+    out = trimesh.Trimesh(v, f, process=False)
+    problem = closed_problem(out)
+    return MeshRef(out), problem, (None if problem else signed_volume(v, f))
 
 
 def _printable_problem(piece, problem):

@@ -474,20 +474,36 @@ def _pose_one(_shared, item):
     return plan_pose(ref.mesh, pins, openings)
 
 
-def base_cuts(pieces, poses):
-    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all)."""
+def base_cuts(pieces, poses, workers=None):
+    """Each piece with the flat cut its pose asks for -> (pieces, mm^3 removed in all). workers: a
+    volpuzzle.workers.Workers that cuts some of them (the same cuts)."""
     import dataclasses
 
+    from .workers import MeshRef
+
+    cut = [p for p in pieces if poses.get(p.id) is not None and poses[p.id].base_cut_mm > 0]
+    items = [(MeshRef(p.mesh), poses[p.id], p.id) for p in cut]
+    done = (workers.map_pieces(_cut_one, items, what="layout") if workers is not None and len(items) > 1
+            else [_cut_one(None, item) for item in items])
+    by_id = {p.id: r for p, r in zip(cut, done, strict=True)}
     out, removed = [], 0.0
     for p in pieces:
-        pose = poses.get(p.id)
-        if pose is None or pose.base_cut_mm <= 0:
+        if p.id not in by_id:
             out.append(p)
             continue
-        mesh, v = base_cut(p.mesh, pose, p.id)
+        ref, v = by_id[p.id]
         removed += v
-        out.append(dataclasses.replace(p, mesh=mesh, volume=p.volume - v, triangles=int(len(mesh.faces))))
+        out.append(dataclasses.replace(p, mesh=ref.mesh, volume=p.volume - v, triangles=int(len(ref.mesh.faces))))
     return out, removed
+
+
+def _cut_one(_shared, item):
+    """base_cut of one item (MeshRef, Pose, piece id), wherever it runs -> (MeshRef, mm^3 removed)."""
+    from .workers import MeshRef
+
+    ref, pose, pid = item
+    mesh, v = base_cut(ref.mesh, pose, pid)
+    return MeshRef(mesh), v
 
 
 def print_entry(piece, pose, placement):

@@ -257,13 +257,13 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
         with timer("label", progress):
             pieces, labels, engraved = label_pieces(s.tiling, s.fmap, pieces, s.joints, poses, workers=workers)
     with timer("layout", progress):
-        pieces, cut = base_cuts(pieces, poses)
+        pieces, cut = base_cuts(pieces, poses, workers=workers)
     if spec.output.labels:
         with timer("label", progress):
             pieces, more = bed_labels(pieces, labels, poses)
         engraved += more
     with timer("check", progress):
-        pieces = printable(pieces)
+        pieces = printable(pieces, workers=workers)
         checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
     checks["base_cuts_mm3"] = round(cut, 3)
     return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks)
