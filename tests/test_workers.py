@@ -131,6 +131,14 @@ def test_a_pool_only_where_it_pays_and_may_start():
     assert W.start(1, 1000) is None
 
 
+def test_one_worker_per_sixteen_pieces_at_most(monkeypatch):
+    sizes = []
+    monkeypatch.setattr(W, "Workers", lambda jobs: sizes.append(jobs - 1))
+    W.start(16, 32)
+    W.start(3, 1000)
+    assert sizes == [2, 2]
+
+
 def _wanted_in_a_daemon(queue):
     queue.put(W.wanted(4, 1000))
 

@@ -319,8 +319,12 @@ class Prefetch:
 
 
 def start(jobs: int | None, pieces: int) -> Workers | None:
-    """A pool for a build of `pieces` pieces with `jobs` processes, or None when one would not pay (see wanted)."""
-    return Workers(jobs) if wanted(jobs, pieces) else None
+    """A pool for a build of `pieces` pieces with `jobs` processes, or None when one would not pay (see wanted). At
+    most one worker per MIN_PIECES pieces: each must earn back its own start-up (and holds ~300 MB at 32 pieces),
+    so a 32-piece build on a 16-core machine starts two, not fifteen."""
+    if not wanted(jobs, pieces):
+        return None
+    return Workers(min(int(jobs), 1 + pieces // MIN_PIECES))
 
 
 class MeshRef:
