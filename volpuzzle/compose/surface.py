@@ -348,7 +348,7 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     if face_clearance > 0 and cut.any():
         slot = np.concatenate(slots)
 
-        insets = []  # the apex's answer, if _setback asked for one: its cap is refined below
+        insets = []  # the apex's answer, when _setback asks for one: its triangles are split below
 
         def apex(points, half, xyz=xyz):  # set back through the map, which _setback does not know; rare, so the
             box = cell_box(cell, sampling)  # cell's parameters are gathered only when an apex asks for them
@@ -356,11 +356,10 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
             insets.append(_apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half))
             return insets[-1]
 
-        moved = xyz + _setback(xyz, faces, slot, cut, 0.5 * face_clearance, apex)
+        half = 0.5 * face_clearance
+        xyz = xyz + _setback(xyz, faces, slot, cut, half, apex)
         if insets and insets[-1] is not None:
-            uvw = _in_box(sampling.uvw[uniq], cell_box(cell, sampling), sampling)
-            moved, faces = _refine_apex(xyz, uvw, moved, faces, insets[-1], fmap, _APEX_SAG * 0.5 * face_clearance)
-        xyz = moved
+            xyz, faces = _refine_apex(xyz, faces, cut[slot], insets[-1], fmap, _APEX_SAG * half)
     return geometry.weld(xyz, faces, WELD_MM)
 
 
@@ -388,7 +387,7 @@ class ApexInset(NamedTuple):
 _APEX_SHARE = 0.4  # of a cell's span along each axis that an apex's ids stay inside from a cut face
 _APEX_CHORD = 1.25  # half-clearances that each moved apex id keeps from the cut faces, measured along the parameters
 _APEX_REACH = 4.0  # the parameter move fades out at this many times the apex's own depth along the collapsed axis
-_APEX_SAG = 0.1  # half-clearances an edge round the apex may bow from the map more than its tessellation did
+_APEX_SAG = 0.1  # half-clearances that an edge round an apex may bow from the map
 _APEX_LEVELS = 5  # times the edges round an apex are halved at most
 
 
@@ -460,42 +459,53 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
             lo[:, a] = box[0, a] + step
         else:
             hi[:, a] = box[1, a] - step
+    # squeezed into the bounds rather than clamped: the bounds vary from point to point with the map's stretch, and
+    # a clamp would put neighbours out of order there (folded triangles), a squeeze keeps their order
     for a in others:
-        q[:, a] = np.clip(q[:, a], lo[:, a], hi[:, a])
+        q[:, a] = lo[:, a] + (uvw[region, a] - box[0, a]) / span[a] * (hi[:, a] - lo[:, a])
     return ApexInset(region, fmap.evaluate(q) - xyz[region], q)
 
 
-def _refine_apex(xyz0, uvw0, xyz, faces, inset, fmap, sag):
-    """The apex's cap and the triangles round it split until their edges follow the map. The ids of a collapsed face
-    sit at one point, so its tessellation is as coarse as it comes (a fan over the whole face); moved apart to a cap
-    (_apex_inset) its flat triangles span up to a right angle of a cone and cut through the concave cut face by a
-    fifth of their size, closer to the neighbour than any vertex. Each edge between two moved points whose midpoint
-    lies further than `sag` mm beyond what the tessellation had there (its chord error before the move) is split at the
-    map's point of the mean parameters, and every triangle along it with it (one split edge: two triangles, two:
-    three, three: four), at most _APEX_LEVELS times. Other edges keep their chords, which the neighbour shares.
-    xyz0 (n, 3) and uvw0 (n, 3) the points before the set-back, in mm and in the cell's parameters; xyz (n, 3) after
-    it; faces (m, 3). -> (points (k, 3), faces (l, 3)), the first n points those given."""
-    par = np.full((len(xyz), 3), np.nan)
+def _refine_apex(xyz, faces, on_cut, inset, fmap, sag):
+    """The points round an apex, set back through the map (_apex_inset), with their triangles split until these
+    follow it. The ids of a collapsed face sit at one point, so the sampling leaves it as coarse as it comes (a fan, a
+    few points over half a turn), and the faces along its edges are fans from that point: moved apart to the apex's
+    cap their flat triangles span up to a right angle round the cones' axis, bow through the concave cut face next
+    to them (closer to the neighbour than any vertex) and through one another. Each edge between two such points whose
+    midpoint lies more than `sag` mm from the map's point of their mean parameters is split there, and every triangle
+    along it with it (one split edge: two triangles, two: three, three: four), at most _APEX_LEVELS times. Inside a
+    cut face a chord within the cell keeps its depth below the map (the new point moves along the face only): the
+    neighbour's side of the face keeps its chords, and the split must not bring this side closer to it. The
+    parameters keep the order the cell's own tessellation gave them (_apex_inset squeezes rather than clamps), so the
+    finer triangles do not fold. xyz (n, 3) set back, faces (m, 3) outward, on_cut (m,) bool: the triangle lies on a
+    cut face. -> (points (k, 3), faces (l, 3)), the first n points those given."""
+    par = np.full((len(xyz), 3), np.nan)  # each point's parameters round the apex, where it has them
     par[inset.points] = inset.uvw
-    xyz0, uvw0, xyz, faces = (np.asarray(a) for a in (xyz0, uvw0, xyz, faces))
     for _ in range(_APEX_LEVELS):
-        e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
-        e = e[np.all(np.isfinite(par[e[:, 0]]) & np.isfinite(par[e[:, 1]]), axis=1)]
+        t = xyz[faces]
+        cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        e, inv = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1),
+                           axis=0, return_inverse=True)
+        inv = inv.ravel()
+        normal = np.zeros((len(e), 3))  # outward, the sum over the triangles along each edge
+        np.add.at(normal, inv, np.tile(cross, (3, 1)))
+        normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+        inside_cut = np.ones(len(e), bool)  # every triangle along the edge on a cut face
+        np.logical_and.at(inside_cut, inv, np.tile(on_cut, 3))
+        moved = np.all(np.isfinite(par[e]), axis=(1, 2))
+        e, normal, inside_cut = e[moved], normal[moved], inside_cut[moved]
         if not len(e):
             break
         q = 0.5 * (par[e[:, 0]] + par[e[:, 1]])
-        q0 = 0.5 * (uvw0[e[:, 0]] + uvw0[e[:, 1]])
-        mid, mid0 = 0.5 * (xyz[e[:, 0]] + xyz[e[:, 1]]), 0.5 * (xyz0[e[:, 0]] + xyz0[e[:, 1]])
         on_map = fmap.evaluate(q)
-        worse = np.linalg.norm(mid - on_map, axis=1) - np.linalg.norm(mid0 - fmap.evaluate(q0), axis=1)
-        split = worse > sag
+        bow = 0.5 * (xyz[e[:, 0]] + xyz[e[:, 1]]) - on_map
+        depth = np.minimum(np.einsum("ij,ij->i", bow, normal), 0.0) * inside_cut  # the depth a chord keeps
+        split = np.linalg.norm(bow - depth[:, None] * normal, axis=1) > sag
         if not split.any():
             break
+        new = on_map + depth[:, None] * normal
         e, n = e[split], len(xyz)
-        # the new points: on the map after the move, on the old chord before it (so that their edges are measured
-        # against what the tessellation had)
-        xyz, xyz0 = np.vstack([xyz, on_map[split]]), np.vstack([xyz0, mid0[split]])
-        par, uvw0 = np.vstack([par, q[split]]), np.vstack([uvw0, q0[split]])
+        xyz, par = np.vstack([xyz, new[split]]), np.vstack([par, q[split]])
         size = len(xyz)
         key = e[:, 0] * size + e[:, 1]
         order = np.argsort(key)
@@ -506,10 +516,12 @@ def _refine_apex(xyz0, uvw0, xyz, faces, inset, fmap, sag):
             k = np.minimum(a, b) * size + np.maximum(a, b)
             at = np.clip(np.searchsorted(key, k), 0, len(key) - 1)
             mids[:, i] = np.where(key[at] == k, new_id[at], -1)
-        out = [faces[np.all(mids < 0, axis=1)]]
-        for t in np.flatnonzero(np.any(mids >= 0, axis=1)):
-            out.append(np.array(_split_triangle(faces[t], mids[t])))
-        faces = np.vstack(out)
+        keep = np.all(mids < 0, axis=1)
+        split_t = np.flatnonzero(~keep)
+        parts = [_split_triangle(faces[i], mids[i]) for i in split_t]
+        faces = np.vstack([faces[keep]] + [np.array(p) for p in parts])
+        on_cut = np.concatenate([on_cut[keep]] + [np.full(len(p), on_cut[i])
+                                                  for i, p in zip(split_t, parts, strict=True)])
     return xyz, faces
 
 
