@@ -475,7 +475,8 @@ def _refine_apex(xyz, faces, on_cut, inset, fmap, sag):
     midpoint lies more than `sag` mm from the map's point of their mean parameters is split there, and every triangle
     along it with it (one split edge: two triangles, two: three, three: four), at most _APEX_LEVELS times. Inside a
     cut face a chord within the cell keeps its depth below the map (the new point moves along the face only): the
-    neighbour's side of the face keeps its chords, and the split must not bring this side closer to it. The
+    neighbour's side of the face keeps its chords, and the split must not bring this side closer to it; next to the
+    cap it follows the map in full, or the kept depth slides it over the cap's edge (crossing triangles). The
     parameters keep the order the cell's own tessellation gave them (_apex_inset squeezes rather than clamps), so the
     finer triangles do not fold. xyz (n, 3) set back, faces (m, 3) outward, on_cut (m,) bool: the triangle lies on a
     cut face. -> (points (k, 3), faces (l, 3)), the first n points those given."""
@@ -492,6 +493,9 @@ def _refine_apex(xyz, faces, on_cut, inset, fmap, sag):
         normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
         inside_cut = np.ones(len(e), bool)  # every triangle along the edge on a cut face
         np.logical_and.at(inside_cut, inv, np.tile(on_cut, 3))
+        on_cap = np.zeros(len(xyz), bool)
+        on_cap[faces[~on_cut]] = True
+        inside_cut &= ~on_cap[e].any(axis=1)
         moved = np.all(np.isfinite(par[e]), axis=(1, 2))
         e, normal, inside_cut = e[moved], normal[moved], inside_cut[moved]
         if not len(e):
