@@ -16,22 +16,25 @@ from volpuzzle.spec import load_spec
 CLEARANCE = 0.15
 
 
+def _ball_cells(tmp, grid, splits):
+    """A ball of radius 30 in a sphere cage cut by `grid` and `splits` (YAML text) -> ({cell index: (vertices,
+    faces)} composed with the face clearance at a 0.2 mm tolerance, the cage's centre (3,))."""
+    trimesh.creation.icosphere(1, radius=30.0).export(tmp / "ball.stl")
+    (tmp / "s.yaml").write_text(f"name: apex\nmodel:\n  mesh: ball.stl\n  cage: {{type: sphere, padding: 2}}\n"
+                                f"grid: {grid}\nsplits: {splits}\nperiodic: [w]\noutput: {{tolerance: 0.2}}\n")
+    stages = prepare(load_spec(tmp / "s.yaml"))
+    sampling = sample_parameters(stages.tiling, stages.fmap, 0.2)
+    meshes = {index: cell_surface(cell, sampling, stages.fmap, face_clearance=CLEARANCE)
+              for index, cell in stages.tiling.cells.items()}
+    return meshes, stages.fmap.evaluate(np.array([[0.0, 0.3, 0.3]]))[0]
+
+
 @pytest.fixture(scope="module")
 def wide_wedges(tmp_path_factory):
     """A ball in a sphere cage whose azimuth cells are 216 and 72 degrees wide: the polar cones meet at the centre,
     inside the model, and bend round it over more than half a turn in the wide cells."""
-    tmp = tmp_path_factory.mktemp("apex")
-    trimesh.creation.icosphere(1, radius=30.0).export(tmp / "ball.stl")
-    (tmp / "s.yaml").write_text("name: apex\nmodel:\n  mesh: ball.stl\n  cage: {type: sphere, padding: 2}\n"
-                                "grid: [1, 3, 3]\nsplits: {v: [0.38, 0.6], w: [0.6, 0.8]}\nperiodic: [w]\n"
-                                "output: {tolerance: 0.2}\n")
-    stages = prepare(load_spec(tmp / "s.yaml"))
-    sampling = sample_parameters(stages.tiling, stages.fmap, 0.2)
-    cells = {}
-    for index, cell in stages.tiling.cells.items():
-        v, f = cell_surface(cell, sampling, stages.fmap, face_clearance=CLEARANCE)
-        cells[index] = geometry.manifold_from_mesh(v, f, str(index))
-    return cells
+    meshes, _ = _ball_cells(tmp_path_factory.mktemp("apex"), "[1, 3, 3]", "{v: [0.38, 0.6], w: [0.6, 0.8]}")
+    return {index: geometry.manifold_from_mesh(v, f, str(index)) for index, (v, f) in meshes.items()}
 
 
 @pytest.mark.parametrize("pair", [((0, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 2, 0)), ((0, 0, 1), (0, 1, 1)),
@@ -54,17 +57,7 @@ def bunny_like_wedges(tmp_path_factory):
     """A ball in a sphere cage cut as bunny-sphere's is near its centre: polar cones at 50 and 64 degrees and azimuth
     cells of 192 and 168 degrees. The middle cells are apexes (their cones bend round the centre over more than half
     a turn), the polar cap's cone meets the half-planes along straight rulings (one segment each) from the centre."""
-    tmp = tmp_path_factory.mktemp("bunny_like")
-    trimesh.creation.icosphere(1, radius=30.0).export(tmp / "ball.stl")
-    (tmp / "s.yaml").write_text("name: apex\nmodel:\n  mesh: ball.stl\n  cage: {type: sphere, padding: 2}\n"
-                                "grid: [1, 3, 2]\nsplits: {v: [0.2764, 0.356], w: [0.5341]}\nperiodic: [w]\n"
-                                "output: {tolerance: 0.2}\n")
-    stages = prepare(load_spec(tmp / "s.yaml"))
-    sampling = sample_parameters(stages.tiling, stages.fmap, 0.2)
-    meshes = {index: cell_surface(cell, sampling, stages.fmap, face_clearance=CLEARANCE)
-              for index, cell in stages.tiling.cells.items()}
-    centre = stages.fmap.evaluate(np.array([[0.0, 0.3, 0.3]]))[0]
-    return meshes, centre
+    return _ball_cells(tmp_path_factory.mktemp("bunny_like"), "[1, 3, 2]", "{v: [0.2764, 0.356], w: [0.5341]}")
 
 
 def test_cells_round_a_wide_apex_keep_the_face_clearance(bunny_like_wedges):
