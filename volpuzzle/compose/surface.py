@@ -399,8 +399,8 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
     parameters of its own place on the boundary, clamped inside every cut face (by _APEX_SHARE of the span at most),
     as far along the collapsed axis as keeps it _APEX_CHORD half-clearances from each cut face: the apex becomes a
     small cap and each cone's triangles keep their own direction. The points nearer the apex than _APEX_REACH times
-    that depth move the same way, the depth fading out, each clamped _APEX_CHORD half-clearances inside every cut
-    face. -> ApexInset."""
+    that depth move the same way, the depth fading out, their other parameters squeezed to keep _APEX_CHORD
+    half-clearances inside every cut face. -> ApexInset (the cap's triangles are split later, _refine_apex)."""
     t = xyz[faces]
     area = np.bincount(slot, weights=np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
                        minlength=6)
