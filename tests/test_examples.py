@@ -13,8 +13,7 @@ from volpuzzle.io.threemf import read_3mf
 
 SPECS = sorted(p.stem for p in (REPO / "specs").glob("*.yaml"))
 # still short of the face clearance at one spot (issue 10, open)
-GAP_SHORT = {"bunny-sphere": "the sphere cage's centre, where every cell meets, lies inside the bunny: 0.07 mm there",
-             "quarter-torus": "a cut face's corner on the round section, tessellated at 0.5 mm: 0.09 mm there",
+GAP_SHORT = {"quarter-torus": "a cut face's corner on the round section, tessellated at 0.5 mm: 0.087 mm there",
              "twisted-torus": "curved cut faces tessellated at 0.5 mm tilt against each other: 0.109 mm (0.143 at "
                               "its own 0.05 mm)"}
 

@@ -703,6 +703,12 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
                     # faces leave slivers that float32 files turn into non-manifold edges)
                     reach = (boolean(parts[x].translate(list(clearance * n)),
                                      parts[y].translate(list(-clearance * n)), "intersection", what))
+                    # the parts reach their cells' own faces sideways, so the column would fill the half clearance
+                    # of a third piece across the faces that run through the contact: the shrunk cells, moved the
+                    # same way (twice as far, to overlap the column), keep it half a clearance back from those
+                    reach = boolean(reach, boolean(shrunk[x].translate(list(2.0 * clearance * n)),
+                                                   shrunk[y].translate(list(-2.0 * clearance * n)), "intersection",
+                                                   what), "intersection", what)
                     keep = boolean(keep, reach, "union", what)
         new = kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()),
                           SLIVER_SHARE)

@@ -99,8 +99,8 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     along the face, fading out over twice the slide (at least _FADE half-clearances), so that none is overtaken by the
     moving edge (a fold) and the tip of a sharp wedge stays half a clearance from the cut.
     Where no move of a point is behind all its cut triangles (an apex where cones meet over more than half a turn,
-    the centre of a sphere cage) and `apex` is given, apex(points (k,) indices into xyz, half) -> (k, 3) or None
-    -> (indices (j,), displacements (j, 3)) or None sets back the points around it through the map (_apex_inset)."""
+    the centre of a sphere cage) and `apex` is given, apex(points (k,) indices into xyz, half) -> ApexInset or None
+    sets back the points around it through the map (_apex_inset)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -152,6 +152,7 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     # where even 1 / _LEAN would not reach some cut triangle's plane, the averaged normals are no guide: the least
     # move behind every triangle is solved instead; where there is none (an apex), `apex` places each id on its own
     override = (np.zeros(0, np.int64), np.zeros((0, 3)))
+    apexes = np.zeros(nc, bool)  # clusters whose ids were placed each on its own
     lost = np.flatnonzero(worst < _LEAN)
     if len(lost):
         solved = _behind_every_triangle(disp, lost, cluster, faces, cross, tri_size, real, on_cut, half)
@@ -159,11 +160,12 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
         if apex is not None and not solved.all():
             found = apex(np.flatnonzero(np.isin(cluster, lost[~solved])), half)
             if found is not None:
-                override = found
-                points, placed = found
+                override = (found.points, found.moves)
+                points, placed = override
                 for c in np.unique(cluster[points]):  # the slides below follow the mean of the cluster's ids
                     disp[c] = placed[cluster[points] == c].mean(axis=0)
                 worst[np.unique(cluster[points])] = 1.0
+                apexes[lost[~solved]] = True
     disp *= 1.0 / np.clip(worst, _LEAN, 1.0)[:, None]
     # where: clusters on one face only; edges: triangle edges along a line where two faces meet
     pos = np.zeros((nc, 3))
@@ -200,6 +202,9 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     rows, cols, face_of, lam, dist = rows[order], cols[order], face_of[order], lam[order], dist[order]
     first = np.r_[True, rows[1:] != rows[:-1]]
     rows, cols, face_of, lam, dist = rows[first], cols[first], face_of[first], lam[first], dist[first]
+    # an apex's mean move (its cap's) is no edge's set-back: along an edge from it (a cone's straight ruling, one
+    # long segment) the points follow the edge's other end, whose move is the set-back of the same two faces
+    lam = np.where(apexes[e[cols, 0]], 1.0, np.where(apexes[e[cols, 1]], 0.0, lam))
     slide = (1.0 - lam)[:, None] * disp[e[cols, 0]] + lam[:, None] * disp[e[cols, 1]]
     n = unit[rows, face_of]
     slide -= np.einsum("ij,ij->i", slide, n)[:, None] * n  # only along the point's own face
@@ -343,12 +348,18 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
     if face_clearance > 0 and cut.any():
         slot = np.concatenate(slots)
 
+        insets = []  # the apex's answer, when _setback asks for one: its triangles are split below
+
         def apex(points, half, xyz=xyz):  # set back through the map, which _setback does not know; rare, so the
             box = cell_box(cell, sampling)  # cell's parameters are gathered only when an apex asks for them
             uvw = _in_box(sampling.uvw[uniq], box, sampling)
-            return _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half)
+            insets.append(_apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half))
+            return insets[-1]
 
-        xyz = xyz + _setback(xyz, faces, slot, cut, 0.5 * face_clearance, apex)
+        half = 0.5 * face_clearance
+        xyz = xyz + _setback(xyz, faces, slot, cut, half, apex)
+        if insets and insets[-1] is not None:
+            xyz, faces = _refine_apex(xyz, faces, cut[slot], insets[-1], fmap, _APEX_SAG * half)
     return geometry.weld(xyz, faces, WELD_MM)
 
 
@@ -364,9 +375,20 @@ def _in_box(uvw, box, sampling):
     return uvw
 
 
+class ApexInset(NamedTuple):
+    """Points set back through the map round an apex: points (j,) indices into the cell's points, moves (j, 3) mm,
+    uvw (j, 3) the cell parameters they were moved to."""
+
+    points: np.ndarray
+    moves: np.ndarray
+    uvw: np.ndarray
+
+
 _APEX_SHARE = 0.4  # of a cell's span along each axis that an apex's ids stay inside from a cut face
 _APEX_CHORD = 1.25  # half-clearances that each moved apex id keeps from the cut faces, measured along the parameters
 _APEX_REACH = 4.0  # the parameter move fades out at this many times the apex's own depth along the collapsed axis
+_APEX_SAG = 0.1  # half-clearances that an edge round an apex may bow from the map
+_APEX_LEVELS = 5  # times the edges round an apex are halved at most
 
 
 def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
@@ -377,8 +399,8 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
     parameters of its own place on the boundary, clamped inside every cut face (by _APEX_SHARE of the span at most),
     as far along the collapsed axis as keeps it _APEX_CHORD half-clearances from each cut face: the apex becomes a
     small cap and each cone's triangles keep their own direction. The points nearer the apex than _APEX_REACH times
-    that depth move the same way, the depth fading out, each clamped _APEX_CHORD half-clearances inside every cut
-    face. -> (indices (j,), displacements (j, 3) mm)."""
+    that depth move the same way, the depth fading out, their other parameters squeezed to keep _APEX_CHORD
+    half-clearances inside every cut face. -> ApexInset (the cap's triangles are split later, _refine_apex)."""
     t = xyz[faces]
     area = np.bincount(slot, weights=np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
                        minlength=6)
@@ -410,7 +432,10 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
         for a, sd in cut_sides:
             on_face = q.copy()
             on_face[:, a] = box[sd, a]
-            near.append(np.min(np.linalg.norm(moved - fmap.evaluate(on_face), axis=1)))
+            chord = np.linalg.norm(moved - fmap.evaluate(on_face), axis=1)
+            # ids on a pole's line (a second collapsed face) lie on every face through it: no distance to keep there
+            chord = chord[chord > 1e-9 * max(float(np.abs(moved).max()), 1.0)]
+            near.append(float(chord.min()) if len(chord) else np.inf)
         if min(near) >= _APEX_CHORD * half:
             break
         depth *= 1.25
@@ -434,9 +459,91 @@ def _apex_inset(uvw, xyz, faces, slot, sides, cut, box, fmap, points, half):
             lo[:, a] = box[0, a] + step
         else:
             hi[:, a] = box[1, a] - step
+    # squeezed into the bounds rather than clamped: the bounds vary from point to point with the map's stretch, and
+    # a clamp would put neighbours out of order there (folded triangles), a squeeze keeps their order
     for a in others:
-        q[:, a] = np.clip(q[:, a], lo[:, a], hi[:, a])
-    return region, fmap.evaluate(q) - xyz[region]
+        q[:, a] = lo[:, a] + (uvw[region, a] - box[0, a]) / span[a] * (hi[:, a] - lo[:, a])
+    return ApexInset(region, fmap.evaluate(q) - xyz[region], q)
+
+
+def _refine_apex(xyz, faces, on_cut, inset, fmap, sag):
+    """The points round an apex, set back through the map (_apex_inset), with their triangles split until these
+    follow it. The ids of a collapsed face sit at one point, so the sampling leaves it as coarse as it comes (a fan, a
+    few points over half a turn), and the faces along its edges are fans from that point: moved apart to the apex's
+    cap their flat triangles span up to a right angle round the cones' axis, bow through the concave cut face next
+    to them (closer to the neighbour than any vertex) and through one another. Each edge between two such points whose
+    midpoint lies more than `sag` mm from the map's point of their mean parameters is split there, and every triangle
+    along it with it (one split edge: two triangles, two: three, three: four), at most _APEX_LEVELS times. Inside a
+    cut face a chord within the cell keeps its depth below the map (the new point moves along the face only): the
+    neighbour's side of the face keeps its chords, and the split must not bring this side closer to it; next to the
+    cap it follows the map in full, or the kept depth slides it over the cap's edge (crossing triangles). The
+    parameters keep the order the cell's own tessellation gave them (_apex_inset squeezes rather than clamps), so the
+    finer triangles do not fold. xyz (n, 3) set back, faces (m, 3) outward, on_cut (m,) bool: the triangle lies on a
+    cut face. -> (points (k, 3), faces (l, 3)), the first n points those given."""
+    par = np.full((len(xyz), 3), np.nan)  # each point's parameters round the apex, where it has them
+    par[inset.points] = inset.uvw
+    for _ in range(_APEX_LEVELS):
+        t = xyz[faces]
+        cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        e, inv = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1),
+                           axis=0, return_inverse=True)
+        inv = inv.ravel()
+        normal = np.zeros((len(e), 3))  # outward, the sum over the triangles along each edge
+        np.add.at(normal, inv, np.tile(cross, (3, 1)))
+        normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+        inside_cut = np.ones(len(e), bool)  # every triangle along the edge on a cut face
+        np.logical_and.at(inside_cut, inv, np.tile(on_cut, 3))
+        on_cap = np.zeros(len(xyz), bool)
+        on_cap[faces[~on_cut]] = True
+        inside_cut &= ~on_cap[e].any(axis=1)
+        moved = np.all(np.isfinite(par[e]), axis=(1, 2))
+        e, normal, inside_cut = e[moved], normal[moved], inside_cut[moved]
+        if not len(e):
+            break
+        q = 0.5 * (par[e[:, 0]] + par[e[:, 1]])
+        on_map = fmap.evaluate(q)
+        bow = 0.5 * (xyz[e[:, 0]] + xyz[e[:, 1]]) - on_map
+        depth = np.minimum(np.einsum("ij,ij->i", bow, normal), 0.0) * inside_cut  # the depth a chord keeps
+        split = np.linalg.norm(bow - depth[:, None] * normal, axis=1) > sag
+        if not split.any():
+            break
+        new = on_map + depth[:, None] * normal
+        e, n = e[split], len(xyz)
+        xyz, par = np.vstack([xyz, new[split]]), np.vstack([par, q[split]])
+        size = len(xyz)
+        key = e[:, 0] * size + e[:, 1]
+        order = np.argsort(key)
+        key, new_id = key[order], n + order
+        mids = np.full(faces.shape, -1)  # the new point on each triangle's edge i -> i + 1, -1 where not split
+        for i in range(3):
+            a, b = faces[:, i], faces[:, (i + 1) % 3]
+            k = np.minimum(a, b) * size + np.maximum(a, b)
+            at = np.clip(np.searchsorted(key, k), 0, len(key) - 1)
+            mids[:, i] = np.where(key[at] == k, new_id[at], -1)
+        keep = np.all(mids < 0, axis=1)
+        split_t = np.flatnonzero(~keep)
+        parts = [_split_triangle(faces[i], mids[i]) for i in split_t]
+        faces = np.vstack([faces[keep]] + [np.array(p) for p in parts])
+        on_cut = np.concatenate([on_cut[keep]] + [np.full(len(p), on_cut[i])
+                                                  for i, p in zip(split_t, parts, strict=True)])
+    return xyz, faces
+
+
+def _split_triangle(tri, mids):
+    """The triangles (k, 3), same orientation, that replace triangle tri (3,) whose edges tri[i]-tri[i+1] are split at
+    mids[i] (-1: not split)."""
+    a, b, c = (int(x) for x in tri)
+    ab, bc, ca = (int(x) for x in mids)
+    if ab >= 0 and bc >= 0 and ca >= 0:
+        return [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
+    # rotate so that the split edges come first: (a, b) always split, (b, c) maybe
+    for _ in range(3):
+        if ab >= 0 and (bc >= 0 or ca < 0):
+            break
+        a, b, c, ab, bc, ca = b, c, a, bc, ca, ab
+    if bc >= 0:
+        return [[a, ab, c], [ab, b, bc], [ab, bc, c]]
+    return [[a, ab, c], [ab, b, c]]
 
 
 def face_clearance_volume(sampling, face_clearance):
