@@ -192,10 +192,21 @@ def seed_points(scale, knots_s, knots_t):
     return pts[(pts[:, 0] > e) & (pts[:, 0] < 1 - e) & (pts[:, 1] > e) & (pts[:, 1] < 1 - e)]
 
 
-def _member(keys, sorted_keys):
-    """keys (any shape) found in the sorted 1-d sorted_keys: a binary search, cheaper than np.isin's sort of both."""
-    pos = np.clip(np.searchsorted(sorted_keys, keys), 0, len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
+class _EdgeIndex:
+    """The triangles' edge keys (m, 3) sorted once, to find where given keys occur without a pass over all of them:
+    the longest-edge closure asks this a few times a round, each time of a few new keys."""
+
+    def __init__(self, edge_keys):
+        flat = edge_keys.ravel()
+        self.order = np.argsort(flat, kind="stable")
+        self.sorted = flat[self.order]
+
+    def where(self, keys):
+        """Flat positions (into edge_keys.ravel()) of every entry equal to one of the sorted unique keys."""
+        lo = np.searchsorted(self.sorted, keys, side="left")
+        count = np.searchsorted(self.sorted, keys, side="right") - lo
+        start = np.repeat(lo - (np.cumsum(count) - count), count)
+        return self.order[start + np.arange(int(count.sum()))]
 
 
 def refine_faces(works, breaks, fmap, target, tolerance):
@@ -299,12 +310,18 @@ def refine_faces(works, breaks, fmap, target, tolerance):
                 f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
         rows = np.arange(len(tris))
         split = np.unique(edge_keys[rows[bad], longest[bad]])
-        while True:
-            has = _member(edge_keys, split)
-            need = np.any(has, axis=1) & ~has[rows, longest]
-            if not np.any(need):
-                break
-            split = np.union1d(split, edge_keys[rows[need], longest[need]])
+        # the closure: a triangle with an edge to split has its longest split too, until none is missing. Only the
+        # triangles that the keys added last touch can miss one, so each pass looks at those alone
+        index = _EdgeIndex(edge_keys)
+        has = np.zeros(edge_keys.shape, dtype=bool)  # has[t, e]: edge e of triangle t is split
+        new = split
+        while len(new):
+            hit = index.where(new)
+            has.ravel()[hit] = True
+            touched = np.unique(hit // 3)
+            need = touched[~has[touched, longest[touched]]]
+            new = np.unique(edge_keys[need, longest[need]])  # none of them split yet: has is False there
+            split = np.union1d(split, new)
         # new midpoints
         lo, hi = split // key_base, split % key_base
         mid = len(st) + np.arange(len(split))
