@@ -275,16 +275,22 @@ def refine_faces(works, breaks, fmap, target, tolerance):
             weights = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
                                  np.broadcast_to(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), (m, 3, 3))],
                                 axis=1)  # (m, 6, 3): centroid, 2 random, 3 edge midpoints
-            pts = np.einsum("mkj,mjd->mkd", weights, st[new_tris]).reshape(-1, 2)
+            pts = np.einsum("mkj,mjd->mkd", weights, st[new_tris])
             lin = np.einsum("mkj,mjd->mkd", weights, xyz[new_tris])
             new_face = face_of[new_tris[:, 0]]
-            got = fmap.evaluate(params(pts, np.repeat(new_face, 6))).reshape(m, 6, 3)
+            # an edge that two new triangles share has one midpoint (the halves of the same two corners, to the last
+            # bit), so F is evaluated there once: 2 in 5 of the midpoints asked for on the twisted torus
+            _, first, again = np.unique(k, return_index=True, return_inverse=True)
+            inner = params(pts[:, :3].reshape(-1, 2), np.repeat(new_face, 3))  # centroid, 2 random, per triangle
+            mids = params(pts[:, 3:].reshape(-1, 2)[first], np.repeat(new_face, 3)[first])
+            val = fmap.evaluate(np.concatenate([inner, mids]))
+            got = np.concatenate([val[:3 * m].reshape(m, 3, 3), val[3 * m:][again.reshape(m, 3)]], axis=1)
             d = _deviation(got - lin, xyz[new_tris])
             d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
             err[new] = d.max(axis=1)
             # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
             # splitting mends it
-            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], new_face))
+            _, jac = fmap.evaluate_with_jacobian(inner.reshape(m, 3, 3)[:, 0])
             ax = axes[new_face]
             n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
             c = xyz[new_tris]
