@@ -168,8 +168,8 @@ class FaceWork:
                 continue
             e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
             bnd = np.sort(np.stack([np.arange(nb), (np.arange(nb) + 1) % nb], 1), axis=1)
-            have = set(map(tuple, e[(e[:, 1] < nb)]))
-            if all(tuple(x) in have for x in bnd):
+            # every boundary segment is an edge of the triangulation (edges as one integer each, lo * n + hi)
+            if np.isin(bnd[:, 0] * n + bnd[:, 1], e[:, 0] * n + e[:, 1]).all():
                 self.tris = tri
                 return tri
         raise GeometryError(f"compose: could not triangulate the {AXES[self.key.axis]} face at grid {self.key.corner} "
