@@ -320,14 +320,14 @@ def refine_faces(works, breaks, fmap, target, tolerance):
         # triangles that the keys added last touch can miss one, so each pass looks at those alone
         index = _EdgeIndex(edge_keys)
         has = np.zeros(edge_keys.shape, dtype=bool)  # has[t, e]: edge e of triangle t is split
-        new = split
-        while len(new):
-            hit = index.where(new)
+        added = split
+        while len(added):
+            hit = index.where(added)
             has.ravel()[hit] = True
             touched = np.unique(hit // 3)
             need = touched[~has[touched, longest[touched]]]
-            new = np.unique(edge_keys[need, longest[need]])  # none of them split yet: has is False there
-            split = np.union1d(split, new)
+            added = np.unique(edge_keys[need, longest[need]])  # none of them split yet: has is False there
+            split = np.union1d(split, added)
         # new midpoints
         lo, hi = split // key_base, split % key_base
         mid = len(st) + np.arange(len(split))
