@@ -400,6 +400,9 @@ def test_a_base_cut_drops_a_speck_it_parts_from_the_piece_but_refuses_to_cut_a_p
     assert cut.volume == pytest.approx(1000 - 0.2 * 100, rel=1e-9) and removed > 20
     with pytest.raises(GeometryError, match=r"\(base cut\): the mesh has 2 separate bodies"):
         base_cut(piece(3.0), pose)  # 3 x 0.5 x 2.8 mm is a part of the piece, not a speck
+    thin = trimesh.creation.box(bounds=[[0, 0, 0], [10, 10, 0.1]])
+    with pytest.raises(GeometryError, match=r"plate \(base cut\): the mesh has no triangles"):
+        base_cut(thin, pose, "plate")  # a 0.2 mm flat leaves nothing of a 0.1 mm plate
 
 
 def test_a_build_whose_facing_cut_faces_close_is_refused_before_it_is_written(tmp_path, monkeypatch):

@@ -15,6 +15,7 @@ class Model:
     scale: float  # mm per model unit, including `size`
     info: dict
     mesh: object = None  # trimesh.Trimesh in mm, in mesh mode: each piece is finally intersected with it
+    bbox: object = None  # (2, 3) mm, the box of `volume` when the loader measured it (to size the model), else None
 
 
 def _scaled(vol, factor):
@@ -44,13 +45,17 @@ def load_model_for(spec):
         return _load_mesh_model(spec)
     scale = model_spec.unit_scale
     vol = _scaled(vol, scale)
+    box = None
     if model_spec.size is not None:
         lo, hi = bbox(vol)
         largest = float(np.max(np.asarray(hi) - np.asarray(lo)))
         factor = model_spec.size / largest
         vol = _scaled(vol, factor)
         scale *= factor
-    return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale})
+        # the sized model's box is the measured one scaled (a uniform scale about the origin), so the report need not
+        # measure it again (18 bounded searches, ~0.16 CPU s)
+        box = np.stack([np.asarray(lo, float), np.asarray(hi, float)]) * factor
+    return Model(vol, scale, {"format": meta.get("format"), "scale_mm_per_unit": scale}, bbox=box)
 
 
 def _load_mesh_model(spec):

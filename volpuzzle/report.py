@@ -21,7 +21,7 @@ def model_report(model, model_check, seams_found):
         lo, hi = model.mesh.bounds
         model_volume = float(model.mesh.volume)
     else:
-        lo, hi = bbox(model.volume)
+        lo, hi = model.bbox if model.bbox is not None else bbox(model.volume)
         model_volume = float(volume_of(model.volume))
     return {
         "volume_mm3": model_volume,

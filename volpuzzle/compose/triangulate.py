@@ -168,8 +168,8 @@ class FaceWork:
                 continue
             e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
             bnd = np.sort(np.stack([np.arange(nb), (np.arange(nb) + 1) % nb], 1), axis=1)
-            have = set(map(tuple, e[(e[:, 1] < nb)]))
-            if all(tuple(x) in have for x in bnd):
+            # every boundary segment is an edge of the triangulation (edges as one integer each, lo * n + hi)
+            if np.isin(bnd[:, 0] * n + bnd[:, 1], e[:, 0] * n + e[:, 1]).all():
                 self.tris = tri
                 return tri
         raise GeometryError(f"compose: could not triangulate the {AXES[self.key.axis]} face at grid {self.key.corner} "
@@ -192,10 +192,21 @@ def seed_points(scale, knots_s, knots_t):
     return pts[(pts[:, 0] > e) & (pts[:, 0] < 1 - e) & (pts[:, 1] > e) & (pts[:, 1] < 1 - e)]
 
 
-def _member(keys, sorted_keys):
-    """keys (any shape) found in the sorted 1-d sorted_keys: a binary search, cheaper than np.isin's sort of both."""
-    pos = np.clip(np.searchsorted(sorted_keys, keys), 0, len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
+class _EdgeIndex:
+    """The triangles' edge keys (m, 3) sorted once, to find where given keys occur without a pass over all of them:
+    the longest-edge closure asks this a few times a round, each time of a few new keys."""
+
+    def __init__(self, edge_keys):
+        flat = edge_keys.ravel()
+        self.order = np.argsort(flat, kind="stable")
+        self.sorted = flat[self.order]
+
+    def where(self, keys):
+        """Flat positions (into edge_keys.ravel()) of every entry equal to one of the sorted unique keys."""
+        lo = np.searchsorted(self.sorted, keys, side="left")
+        count = np.searchsorted(self.sorted, keys, side="right") - lo
+        start = np.repeat(lo - (np.cumsum(count) - count), count)
+        return self.order[start + np.arange(int(count.sum()))]
 
 
 def refine_faces(works, breaks, fmap, target, tolerance):
@@ -264,16 +275,22 @@ def refine_faces(works, breaks, fmap, target, tolerance):
             weights = np.concatenate([np.full((m, 1, 3), 1 / 3), lam,
                                  np.broadcast_to(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), (m, 3, 3))],
                                 axis=1)  # (m, 6, 3): centroid, 2 random, 3 edge midpoints
-            pts = np.einsum("mkj,mjd->mkd", weights, st[new_tris]).reshape(-1, 2)
+            pts = np.einsum("mkj,mjd->mkd", weights, st[new_tris])
             lin = np.einsum("mkj,mjd->mkd", weights, xyz[new_tris])
             new_face = face_of[new_tris[:, 0]]
-            got = fmap.evaluate(params(pts, np.repeat(new_face, 6))).reshape(m, 6, 3)
+            # an edge that two new triangles share has one midpoint (the halves of the same two corners, to the last
+            # bit), so F is evaluated there once: 2 in 5 of the midpoints asked for on the twisted torus
+            _, first, again = np.unique(k, return_index=True, return_inverse=True)
+            inner = params(pts[:, :3].reshape(-1, 2), np.repeat(new_face, 3))  # centroid, 2 random, per triangle
+            mids = params(pts[:, 3:].reshape(-1, 2)[first], np.repeat(new_face, 3)[first])
+            val = fmap.evaluate(np.concatenate([inner, mids]))
+            got = np.concatenate([val[:3 * m].reshape(m, 3, 3), val[3 * m:][again.reshape(m, 3)]], axis=1)
             d = _deviation(got - lin, xyz[new_tris])
             d[:, 3:] *= interior[new]  # boundary segments were fitted with the edges, and stay
             err[new] = d.max(axis=1)
             # a triangle turned over against the surface folds the mesh (the across-only measure cannot see that);
             # splitting mends it
-            _, jac = fmap.evaluate_with_jacobian(params(pts.reshape(m, 6, 2)[:, 0], new_face))
+            _, jac = fmap.evaluate_with_jacobian(inner.reshape(m, 3, 3)[:, 0])
             ax = axes[new_face]
             n_s = np.cross(jac[np.arange(m), :, ax[:, 0]], jac[np.arange(m), :, ax[:, 1]])
             c = xyz[new_tris]
@@ -299,12 +316,18 @@ def refine_faces(works, breaks, fmap, target, tolerance):
                 f"(got tolerance {tolerance:g}, expected a coarser one, e.g. {tolerance * 4:g})")
         rows = np.arange(len(tris))
         split = np.unique(edge_keys[rows[bad], longest[bad]])
-        while True:
-            has = _member(edge_keys, split)
-            need = np.any(has, axis=1) & ~has[rows, longest]
-            if not np.any(need):
-                break
-            split = np.union1d(split, edge_keys[rows[need], longest[need]])
+        # the closure: a triangle with an edge to split has its longest split too, until none is missing. Only the
+        # triangles that the keys added last touch can miss one, so each pass looks at those alone
+        index = _EdgeIndex(edge_keys)
+        has = np.zeros(edge_keys.shape, dtype=bool)  # has[t, e]: edge e of triangle t is split
+        added = split
+        while len(added):
+            hit = index.where(added)
+            has.ravel()[hit] = True
+            touched = np.unique(hit // 3)
+            need = touched[~has[touched, longest[touched]]]
+            added = np.unique(edge_keys[need, longest[need]])  # none of them split yet: has is False there
+            split = np.union1d(split, added)
         # new midpoints
         lo, hi = split // key_base, split % key_base
         mid = len(st) + np.arange(len(split))
