@@ -331,44 +331,6 @@ def test_outline_fast_path_matches_segment_by_segment():
                    for a, b in zip(fast, slow, strict=True))
 
 
-def test_outline_cache_gives_the_font_s_answer_bit_for_bit_while_matplotlib_is_unchanged(tmp_path, monkeypatch):
-    cache = L._OutlineCache(tmp_path)
-    loops, box = L._outline_from_font("p12-3-4")
-    assert cache.read("p12-3-4") is None  # nothing kept yet
-    cache.write("p12-3-4", loops, box)
-    kept_loops, kept_box = cache.read("p12-3-4")
-    assert np.array_equal(kept_box, box) and len(kept_loops) == len(loops)
-    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(kept_loops, loops, strict=True))
-    assert cache.read("p12-3-5") is None  # another text, another entry
-    # a file of matplotlib's changed (another version, or the font it chose): the entry no longer counts
-    stamp = L._stamp
-    monkeypatch.setattr(L, "_stamp", lambda path: stamp(path)[:2] + [stamp(path)[2] + 1])
-    assert cache.read("p12-3-4") is None
-
-
-def test_outline_reads_the_cache_and_a_broken_cache_only_means_computing(tmp_path, monkeypatch):
-    monkeypatch.setattr(L, "_OUTLINES", L._OutlineCache(tmp_path))
-    L._outline.cache_clear()
-    try:
-        loops, box = L._outline("p7-0-1")
-        assert len(list(tmp_path.glob("outline-*.npz"))) == 1
-        L._outline.cache_clear()
-        with monkeypatch.context() as m:
-            m.setattr(L, "_outline_from_font", lambda _text: pytest.fail("computed again, not read"))
-            again, _ = L._outline("p7-0-1")
-        assert all(np.array_equal(a, b) for a, b in zip(again, loops, strict=True))
-        next(tmp_path.glob("outline-*.npz")).write_bytes(b"not a zip file")
-        L._outline.cache_clear()
-        fresh, fresh_box = L._outline("p7-0-1")
-        assert np.array_equal(fresh_box, box) and all(np.array_equal(a, b) for a, b in zip(fresh, loops, strict=True))
-    finally:
-        L._outline.cache_clear()
-    blocked = tmp_path / "a-file"
-    blocked.write_text("x")
-    L._OutlineCache(blocked / "cache").write("p7-0-1", loops, box)  # no folder can be made there: nothing, silently
-    assert not (blocked / "cache").exists()
-
-
 def test_pruned_heights_equal_the_brute_force_minimum():
     rng = np.random.default_rng(7)
     # a wavy closed outline and two joint axes, as _candidates builds them

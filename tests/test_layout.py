@@ -78,20 +78,6 @@ def test_preview_is_a_wide_picture(tmp_path):
     assert (np.abs(px.astype(int) - [200, 60, 60]).sum(1) < 120).any()  # the pieces' colours are in it
 
 
-def test_save_png_writes_every_pixel_as_given(tmp_path):
-    from volpuzzle.preview import save_png
-
-    rgb = np.random.default_rng(3).integers(0, 256, size=(37, 53, 3), dtype=np.uint8)
-    rgb[:10] = 255  # a white band, as the pictures have, beside noise
-    save_png(tmp_path / "x.png", rgb)
-    img = Image.open(tmp_path / "x.png")
-    img.load()  # decoding checks every chunk's CRC and the zlib stream
-    assert img.format == "PNG" and img.mode == "RGB" and img.size == (53, 37)
-    assert np.array_equal(np.asarray(img), rgb)
-    save_png(tmp_path / "y.png", Image.fromarray(rgb))  # a PIL picture, as the preview passes it
-    assert (tmp_path / "y.png").read_bytes() == (tmp_path / "x.png").read_bytes()
-
-
 @pytest.mark.slow
 def test_preview_paints_the_nearer_piece_over_the_farther(tmp_path):
     from volpuzzle.preview import _view_axes

@@ -23,12 +23,6 @@ interpolation between samples. So the groove is >= depth deep everywhere under t
 of a millimetre deeper than that.
 """
 
-import contextlib
-import hashlib
-import json
-import os
-import pathlib
-import tempfile
 import weakref
 from dataclasses import dataclass
 from functools import cache, lru_cache
@@ -80,24 +74,12 @@ def _font():
 
 @lru_cache(maxsize=256)
 def _outline(text):
-    """Closed loops of `text` at 1 em, curves flattened to _FLAT_EM -> (tuple of (k, 2) arrays, ink bbox (2, 2)).
-    Kept between builds (_OutlineCache): importing matplotlib and its font manager cost 0.15-0.2 CPU s, in every build
-    and every worker process, for a few dozen short texts that come out the same each time."""
-    if not text.strip():
-        return (), np.zeros((2, 2))
-    known = _OUTLINES.read(text)
-    if known is not None:
-        return known
-    loops, box = _outline_from_font(text)
-    _OUTLINES.write(text, loops, box)
-    return loops, box
-
-
-def _outline_from_font(text):
-    """_outline of a non-blank text, from the font itself."""
+    """Closed loops of `text` at 1 em, curves flattened to _FLAT_EM -> (tuple of (k, 2) arrays, ink bbox (2, 2))."""
     from matplotlib.path import Path
     from matplotlib.textpath import TextPath
 
+    if not text.strip():
+        return (), np.zeros((2, 2))
     if "$" in text or "\\" in text:  # mathtext, or an escaped dollar: TextPath's own parsing
         path = TextPath((0.0, 0.0), text, size=1.0, prop=_font())
     else:
@@ -192,84 +174,6 @@ def _outline_slow(path):
         return (), np.zeros((2, 2))
     allp = np.concatenate(loops)
     return tuple(loops), np.array([allp.min(axis=0), allp.max(axis=0)])
-
-
-def _code_digest(code, h):
-    """Feed a function's code (its bytecode and constants, nested code included) to the hash h."""
-    h.update(code.co_code)
-    for c in code.co_consts:
-        if hasattr(c, "co_code"):
-            _code_digest(c, h)
-        else:
-            h.update(repr(c).encode())
-
-
-def _stamp(path):
-    """[path, size, modification time ns] of a file: what says it is still the file it was."""
-    st = os.stat(path)
-    return [str(path), int(st.st_size), int(st.st_mtime_ns)]
-
-
-class _OutlineCache:
-    """_outline's answers on disk in `folder` (the package's __pycache__, beside numba's compiled kernels): one .npz
-    per text, named by the text and by this module's outline code and _FLAT_EM, and holding the stamps (_stamp) of
-    matplotlib's __init__.py and of the font file it chose. An entry counts only while both files are unchanged, so
-    another matplotlib or font is measured afresh; an unreadable entry or a folder that cannot be written only means
-    the outline is computed from the font, as without a cache."""
-
-    def __init__(self, folder):
-        self.folder = pathlib.Path(folder)
-        self._key = None
-
-    def _file(self, text):
-        if self._key is None:
-            h = hashlib.sha256(repr(_FLAT_EM).encode())
-            for f in (_outline_from_font, _outline_slow, _font.__wrapped__):
-                _code_digest(f.__code__, h)
-            self._key = h.hexdigest()
-        return self.folder / f"outline-{hashlib.sha256((self._key + chr(0) + text).encode()).hexdigest()[:32]}.npz"
-
-    @staticmethod
-    def _matplotlib():
-        import importlib.util
-
-        spec = importlib.util.find_spec("matplotlib")  # where it is, without importing it
-        return spec.origin if spec is not None else None
-
-    def read(self, text):
-        """(loops, box) as _outline_from_font gives them, or None when not kept or no longer valid."""
-        path = self._file(text)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                stamps = json.loads(str(data["stamps"]))
-                if stamps[0][0] != self._matplotlib() or any(_stamp(s[0]) != s for s in stamps):
-                    return None
-                points, sizes, box = data["points"], data["sizes"], data["box"]
-        except Exception:  # noqa: BLE001 - missing, half-written, corrupt or foreign: computed from the font instead
-            return None
-        return tuple(np.split(points, np.cumsum(sizes)[:-1])), box
-
-    def write(self, text, loops, box):
-        """Keep the answer (matplotlib is loaded by then: it chose the font); failures are silent."""
-        tmp = None
-        try:
-            from matplotlib.font_manager import findfont
-
-            stamps = [_stamp(self._matplotlib()), _stamp(findfont(_font()))]
-            self.folder.mkdir(parents=True, exist_ok=True)
-            points = np.concatenate(loops) if loops else np.zeros((0, 2))
-            with tempfile.NamedTemporaryFile(dir=self.folder, prefix=".outline-", suffix=".npz", delete=False) as f:
-                tmp = f.name
-                np.savez(f, points=points, sizes=np.array([len(x) for x in loops], np.int64), box=np.asarray(box),
-                         stamps=np.array(json.dumps(stamps)))
-            os.replace(tmp, self._file(text))  # whole or not at all, when two builds write at once
-        except Exception:  # noqa: BLE001 - a cache that cannot be written is no error: the outline was computed
-            if tmp is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-
-
-_OUTLINES = _OutlineCache(pathlib.Path(__file__).resolve().parent / "__pycache__")
 
 
 def _ink(text):

@@ -8,8 +8,6 @@ neighbour shows another piece, so seams and pins read at a glance. Painting tria
 painter's algorithm) let long cut faces poke through the pieces in front of them.
 """
 
-import struct
-import zlib
 from functools import lru_cache
 
 import numpy as np
@@ -303,25 +301,8 @@ def render_preview(path, meshes, colors, size=(1600, 800), explode=0.6, title=No
         _text(draw, (i + 0.5) * w / panels, int(0.05 * h), label, 19 * k)
     if title:
         _text(draw, w / 2, int(0.012 * h), str(title), 22 * k)
-    save_png(path, pil.reduce(k))
-
-
-def save_png(path, image):
-    """Write an RGB picture (PIL image or (h, w, 3) uint8 array) as a PNG file: every row unfiltered, zlib's fastest
-    level. Pillow's encoder tries all five row filters on every row, which cost 3x the time (0.3 CPU s per build's
-    47 step pictures and preview) and, on these flat-shaded pictures on white, gave files no smaller."""
-    rgb = np.asarray(image, dtype=np.uint8)
-    h, w = rgb.shape[:2]
-    rows = np.zeros((h, 1 + 3 * w), np.uint8)  # each row starts with its filter type, 0: none
-    rows[:, 1:] = rgb.reshape(h, 3 * w)
-
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-    header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bits per channel, RGB, deflate, no interlace
-    with open(path, "wb") as f:
-        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows.tobytes(), 1))
-                + chunk(b"IEND", b""))
+    # zlib's fastest level: a third the time of the default for a picture about a quarter larger
+    pil.reduce(k).save(path, format="PNG", compress_level=1)
 
 
 def _part(mesh, rgb, faces):
@@ -411,7 +392,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
             _arrow(draw, a, b, width=3 * k)
         _text(draw, w * k / 2, 4 * k, f"step {n}", 14 * k)
         name = f"step-{n:02d}.png"
-        save_png(directory / name, pil.reduce(k))
+        pil.reduce(k).save(directory / name, format="PNG", compress_level=1)
         files.append(name)
         placed[moving] = True
     return files
