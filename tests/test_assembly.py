@@ -329,12 +329,19 @@ def test_a_collision_halfway_along_the_sweep_is_caught():
 
 
 def test_a_worker_process_takes_blocks_apart_to_the_same_steps(monkeypatch):
-    # the pool's thresholds lowered so that the 16-piece ring sends its moving halves to a spawned worker
+    # the threshold lowered so that the 16-piece ring sends its moving halves to the (started) worker
+    import time
+
+    from volpuzzle.workers import Workers
+
     _, plan, joints, pieces = _built("ring")
     here = A.verify_disassembly(pieces, joints, plan)
-    monkeypatch.setattr(A, "_POOL_MIN_PIECES", 2)
     monkeypatch.setattr(A, "_REMOTE_MIN_PIECES", 2)
-    pooled = A.verify_disassembly(pieces, joints, plan, jobs=2)
+    with Workers(2) as workers:
+        deadline = time.monotonic() + 120
+        while not workers.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pooled = A.verify_disassembly(pieces, joints, plan, workers=workers)
     assert here["blocks_in_workers"] == 0 and pooled["blocks_in_workers"] >= 1
     for key in ("assembly_order", "steps", "welded", "stuck", "booleans"):
         assert pooled[key] == here[key], key

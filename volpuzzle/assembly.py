@@ -796,14 +796,10 @@ def _candidates(block, planned, max_tries, groups=True):
             yield m, f, a, s
 
 
-# A worker process costs ~2.5 s of CPU to start (imports) and rebuilds the solids of the pieces it is given (~5 ms
-# each): below this many pieces the whole replay takes less than that.
-_POOL_MIN_PIECES = 96
 _REMOTE_MIN_PIECES = 16  # a smaller block is quicker taken apart here than shipped to a worker
 
 
-def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True, jobs=1,
-                       workers=None):
+def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tries=24, groups=True, workers=None):
     """Replay the plan on the real meshes -> dict.
 
     pieces: {id: trimesh mesh in mm} (or a list of compose.Piece); joints: volpuzzle.joint.Joint list (the ones built);
@@ -815,10 +811,9 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     ('+w' style, of the removal, None off-plan), joints ([pin id, hole id])), welded, stuck (ids), booleans,
     blocks_in_workers, seconds. groups=False allows only one piece at a time (then any grid with a cycle of jointed
     faces is welded).
-    jobs > 1 (and at least _POOL_MIN_PIECES pieces): once a block has come apart, its moving part is taken apart in
-    one of jobs - 1 spawned worker processes while this one takes the fixed part apart. A block's replay depends only
-    on its own pieces, so the result is the same wherever it runs. workers: the build's volpuzzle.workers.Workers,
-    used instead of a pool of its own whatever the number of pieces (its start-up is paid already).
+    workers: the build's volpuzzle.workers.Workers, or None: once a block has come apart, its moving part (of at
+    least _REMOTE_MIN_PIECES pieces) is taken apart in a worker that has started while this process takes the fixed
+    part apart. A block's replay depends only on its own pieces, so the result is the same wherever it runs.
     """
     t0 = time.perf_counter()
     if not isinstance(pieces, dict):
@@ -827,24 +822,9 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     if fine is None:
         lengths = [float(j.length) for j in joints] or [2.0]
         fine = max(0.25, min(1.0, min(lengths) / 3.0))
-    pool, own = workers, False
-    if pool is None and jobs is not None and jobs > 1 and len(pieces) >= _POOL_MIN_PIECES:
-        import concurrent.futures
-        import multiprocessing
-
-        # spawn, never fork: manifold3d's and numba's thread pools are running in this process
-        pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs - 1,
-                                                      mp_context=multiprocessing.get_context("spawn"))
-        own = True
-        for _ in range(jobs - 1):
-            pool.submit(_warm_worker)  # imports while this process sweeps the first split
-    free = 0 if pool is None else workers.size if workers is not None else jobs - 1
-    try:
-        replay = _Replay(_Scene(pieces), joints, plan, limit_frac, fine, max_tries, groups, pool, free)
-        steps = replay.take_apart([replay.cell_of[pid] for pid in replay.scene.ids])
-    finally:
-        if own:
-            pool.shutdown(wait=False, cancel_futures=True)
+    replay = _Replay(_Scene(pieces), joints, plan, limit_frac, fine, max_tries, groups, workers,
+                     0 if workers is None else workers.size)
+    steps = replay.take_apart([replay.cell_of[pid] for pid in replay.scene.ids])
     order = []
     for s in steps:
         for p in s["pieces"]:
@@ -853,12 +833,6 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
     return {"assembly_order": order, "steps": steps, "welded": bool(replay.stuck), "stuck": sorted(replay.stuck),
             "booleans": replay.booleans, "blocks_in_workers": replay.remote_blocks,
             "seconds": round(time.perf_counter() - t0, 3)}
-
-
-def _warm_worker():
-    import manifold3d  # noqa: F401 - loaded before the first block arrives
-
-    return True
 
 
 def _replay_block(meshes, joints, plan, limit_frac, fine, max_tries, groups, block):
@@ -939,15 +913,10 @@ class _Replay:
         """A worker's future for take_apart(block), or None when no worker slot is free."""
         if self.pool is None or self.free <= 0:
             return None
-        import concurrent.futures
-
         meshes = {piece_id(c): (self.scene.verts[piece_id(c)], self.scene._faces[piece_id(c)]) for c in block}
-        try:
-            fut = self.pool.submit(_replay_block, meshes, self.joints, self.plan, self.limit_frac, self.fine,
-                                   self.max_tries, self.groups, list(block))
-        except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
-            return None
-        if fut is None:  # the build's workers have not started yet
+        fut = self.pool.submit(_replay_block, meshes, self.joints, self.plan, self.limit_frac, self.fine,
+                               self.max_tries, self.groups, list(block))
+        if fut is None:  # no worker has started yet (or the pool is shut)
             return None
         self.free -= 1
         return fut
@@ -1049,8 +1018,8 @@ def bend_grid(tiling, fmap, max_bend_deg=MAX_BEND_DEG, lines=3, samples=16):
     return tuple(out) if out != grid else None
 
 
-def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1, tiling=None, fmap=None, workers=None):
-    """Disassembly replayed on the real meshes, reversed (jobs, workers: see verify_disassembly). -> dict with
+def replay_assembly(plan, pieces, joints, allow=(), randomized=False, tiling=None, fmap=None, workers=None):
+    """Disassembly replayed on the real meshes, reversed (workers: see verify_disassembly). -> dict with
     assembly_order, steps, words, welded, stuck.
     A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning); with tiling and fmap
     the message names the grid at which no cell bends more than a half turn (bend_grid), when that is another."""
@@ -1058,7 +1027,7 @@ def replay_assembly(plan, pieces, joints, allow=(), randomized=False, jobs=1, ti
 
     if plan is None:
         return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
-    res = verify_disassembly(pieces, joints, plan, jobs=jobs, workers=workers)
+    res = verify_disassembly(pieces, joints, plan, workers=workers)
     if res["welded"]:
         stuck = ", ".join(res["stuck"][:6]) + (f" and {len(res['stuck']) - 6} more" if len(res["stuck"]) > 6 else "")
         if "welded" not in tuple(allow):

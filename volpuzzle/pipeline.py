@@ -159,7 +159,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
-                                   jobs=jobs, tiling=s.tiling, fmap=s.fmap, workers=workers)
+                                   tiling=s.tiling, fmap=s.fmap, workers=workers)
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
     texture, texture_report = None, None
     if spec.texture is not None:
