@@ -188,12 +188,11 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
                         failures.append(f"{solids[k]}; its overlaps were not measured")
             if not (isinstance(solids[a], str) or isinstance(solids[b], str)):
                 measured.append((a, b))
-        from .workers import MeshRef
+        from .workers import MeshRef, map_pieces
 
         shared = ({k: (MeshRef(meshes[good[k]]), ids[good[k]]) for k in solids}, exact_overlaps, 0.01 * limit)
         chunks = [measured[c:c + _PAIRS_PER_TASK] for c in range(0, len(measured), _PAIRS_PER_TASK)]
-        found = (workers.map_pieces(_overlaps, chunks, shared=shared, what="check") if workers is not None
-                 else [_overlaps(shared, chunk) for chunk in chunks])
+        found = map_pieces(workers, _overlaps, chunks, shared=shared, what="check")
         for (a, b), (v, bound) in zip(measured, [r for chunk in found for r in chunk], strict=True):
             max_bound = max(max_bound, bound)
             tested += 1

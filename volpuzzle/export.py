@@ -712,11 +712,10 @@ def printable(pieces, workers=None):
 
     from .check import remember_closed
     from .errors import GeometryError
-    from .workers import MeshRef
+    from .workers import MeshRef, map_pieces
 
     items = [MeshRef(p.mesh) for p in pieces]
-    done = (workers.map_pieces(_printable_one, items, what="check") if workers is not None
-            else [_printable_one(None, item) for item in items])
+    done = map_pieces(workers, _printable_one, items, what="check")
     out = []
     for p, (ref, problem, volume) in zip(pieces, done, strict=True):
         if problem:  # in piece order, whichever process found it

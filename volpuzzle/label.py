@@ -1106,7 +1106,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
     import dataclasses
 
     from .joint import joints_by_cell
-    from .workers import MeshRef
+    from .workers import MeshRef, map_pieces
 
     poses = poses or {}
     joints = list(joints or ())
@@ -1116,8 +1116,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
         pose = poses.get(p.id)
         items.append((k, p.id, tuple(p.cell), MeshRef(p.mesh), p.volume, None if pose is None else pose.down))
     shared = (tiling, fmap, touching)
-    results = (workers.map_pieces(_label_one, items, shared=shared, what="label") if workers is not None
-               else [_label_one(shared, item) for item in items])
+    results = map_pieces(workers, _label_one, items, shared=shared, what="label")
     out = [p if r[0] is None else dataclasses.replace(p, mesh=r[0].mesh, volume=r[1],
                                                       triangles=int(len(r[0].mesh.faces)))
            for p, r in zip(pieces, results, strict=True)]

@@ -465,12 +465,11 @@ def check_plate(spec, tiling, fmap):
 def plan_poses(pieces, joints, workers=None):
     """{piece id: layout.Pose}: how each piece is printed, planned before labels and base cuts. workers: a
     volpuzzle.workers.Workers that plans some of them (the same poses)."""
-    from .workers import MeshRef
+    from .workers import MeshRef, map_pieces
 
     pins, openings = joint_directions(joints)
     items = [(MeshRef(p.mesh), pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces]
-    poses = (workers.map_pieces(_pose_one, items, what="layout") if workers is not None
-             else [_pose_one(None, item) for item in items])
+    poses = map_pieces(workers, _pose_one, items, what="layout")
     return {p.id: pose for p, pose in zip(pieces, poses, strict=True)}
 
 
@@ -485,12 +484,11 @@ def base_cuts(pieces, poses, workers=None):
     volpuzzle.workers.Workers that cuts some of them (the same cuts)."""
     import dataclasses
 
-    from .workers import MeshRef
+    from .workers import MeshRef, map_pieces
 
     cut = [p for p in pieces if poses.get(p.id) is not None and poses[p.id].base_cut_mm > 0]
     items = [(MeshRef(p.mesh), poses[p.id], p.id) for p in cut]
-    done = (workers.map_pieces(_cut_one, items, what="layout") if workers is not None and len(items) > 1
-            else [_cut_one(None, item) for item in items])
+    done = map_pieces(workers, _cut_one, items, what="layout")
     by_id = {p.id: r for p, r in zip(cut, done, strict=True)}
     out, removed = [], 0.0
     for p in pieces:

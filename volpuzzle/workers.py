@@ -318,6 +318,14 @@ class Prefetch:
         return self._fn(*self._args)
 
 
+def map_pieces(workers: Workers | None, fn: Callable, items: Sequence, shared=None, what: str = "a stage") -> list:
+    """workers.map_pieces(fn, items, shared, what), or [fn(shared, item) for item in items] here when there are no
+    workers: what every per-piece stage does, the same results either way."""
+    if workers is None:
+        return [fn(shared, item) for item in items]
+    return workers.map_pieces(fn, items, shared=shared, what=what)
+
+
 def start(jobs: int | None, pieces: int) -> Workers | None:
     """A pool for a build of `pieces` pieces with `jobs` processes, or None when one would not pay (see wanted). At
     most one worker per MIN_PIECES pieces: each must earn back its own start-up (and holds ~300 MB at 32 pieces),
