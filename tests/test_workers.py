@@ -84,6 +84,32 @@ def test_meshes_travel_as_arrays_and_come_back_equal(pool, monkeypatch):
         assert volume == pytest.approx(box.volume)
 
 
+def _slab(x0, x1, y=0.0):
+    """A 10 x 10 box from x0 to x1 along x, moved by y across, its faces triangulated every ~1.25 mm."""
+    box = trimesh.creation.box([x1 - x0, 10, 10]).subdivide().subdivide().subdivide()
+    return box.apply_translation([(x0 + x1) / 2, y, 0])
+
+
+@pytest.mark.parametrize("per_task", [1, 2, 8])
+def test_face_gaps_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_task):
+    from volpuzzle import check
+
+    # p0 | p1 touch; p2 stands 0.1 mm off p1 but half a vertex spacing across, so its closest vertices (what the
+    # serial rule keeps after a touching pair) are ~0.51 mm apart: a chunk measured apart from the touching pair
+    # must still give that, not the engine's 0.1
+    meshes = {"p0": _slab(0, 10), "p1": _slab(10, 20), "p2": _slab(20.1, 30, 0.5), "p3": _slab(30.3, 40)}
+    serial = check._face_gaps(meshes, 0.3)
+    assert [g[:2] for g in serial] == [("p0", "p1"), ("p1", "p2"), ("p2", "p3")]
+    assert serial[0][3] == 0.0 and serial[1][3] > 0.4
+    monkeypatch.setattr(check, "_GAP_PAIRS_PER_TASK", per_task)
+    for main_takes in (False, True):
+        monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
+        assert check._face_gaps(meshes, 0.3, workers=pool) == serial
+    del meshes["p0"]  # without the touching pair every gap is the engine's, wherever measured
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    assert [g[3] for g in check._face_gaps(meshes, 0.3, workers=pool)] == pytest.approx([0.1, 0.3], abs=1e-9)
+
+
 def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
     with pytest.raises(SpecError, match=r"^grid: item three is refused \(got 3, expected anything else\)$"):

@@ -172,7 +172,8 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
         # labels) is judged before it is written, so a build never passes what its own check refuses
-        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces})
+        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces},
+                                                               workers=workers)
     require_printable(spec, report)
     with timer("export", progress):
         report["timings_s"] = timer.timings
