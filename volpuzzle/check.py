@@ -764,6 +764,7 @@ def _face_gaps(meshes, face_clearance, shared=None, workers=None):
 
 
 _GAP_PAIRS_PER_TASK = 8  # face-gap pairs per worker task: ~150 ms of engine gaps
+_GAP_SEARCH_MARGIN = 1e-6  # mm the engine searches past the closest vertices: well above their rounding
 
 
 def _gaps_of(shared, pairs):
@@ -789,8 +790,10 @@ def _gaps_of(shared, pairs):
             engine = closest
         else:
             sa, sb = piece_solid(refs[a].mesh, a), piece_solid(refs[b].mesh, b)
-            engine = (float(sa.min_gap(sb, reach)) if not (isinstance(sa, str) or isinstance(sb, str))
-                      else float("nan"))
+            # the surfaces come no further apart than their closest vertices, so the engine searching that far
+            # (a hair more, for rounding) finds the same least gap as searching the whole reach, in ~20% less time
+            engine = (float(sa.min_gap(sb, min(reach, closest + _GAP_SEARCH_MARGIN)))
+                      if not (isinstance(sa, str) or isinstance(sb, str)) else float("nan"))
             touching = engine == 0.0
         out.append((float(np.median(dist)), engine, closest))
     return out

@@ -16,13 +16,16 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import DEFAULT_ACCENT, write_3mf
 from .workers import Remote, write_remote
+
+if TYPE_CHECKING:  # trimesh (~1.5 s to import) loads where a mesh is made: build() reads check_target from here
+    import trimesh  # before it starts the workers, which are meant to start while this process loads
 
 __all__ = ["write_build", "check_target", "piece_colors", "report_piece_entry", "clean_json", "render_report_md",
            "dumps_report", "FORMATS", "MARKER", "spec_inputs", "remove_stale_temporaries",
@@ -368,6 +371,8 @@ def render_instructions_html(report: dict) -> str:
 
 def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pins=None, tex=None) -> None:
     if fmt == "stl":
+        import trimesh
+
         # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes.
         path.write_bytes(trimesh.exchange.stl.export_stl(mesh))
     else:
@@ -728,6 +733,8 @@ def printable(pieces, workers=None):
 def _printable_one(_shared, ref):
     """One piece of printable, wherever it runs: MeshRef -> (MeshRef of the float32 mesh, its closed_problem, its
     signed volume mm^3)."""
+    import trimesh
+
     from .check import closed_problem, signed_volume
     from .geometry import weld
     from .workers import MeshRef
@@ -754,6 +761,8 @@ def _printable_problem(piece, problem):
     if not own:
         return (f"{piece.id}: the piece is no longer one closed solid at the float32 precision of STL and 3MF files "
                 f"({problem}); try a smaller output.tolerance")
+    import trimesh
+
     merged = trimesh.Trimesh(piece.mesh.vertices, piece.mesh.faces, process=True, validate=False)
     edges, counts = np.unique(merged.edges_sorted, axis=0, return_counts=True)
     odd = edges[counts != 2]
