@@ -150,6 +150,25 @@ def test_a_prefetch_no_worker_began_is_computed_here(pool):
     assert ahead._future.result() == (False, None)
 
 
+def test_a_prefetch_runs_meanwhile_here_only_while_a_worker_computes_it(pool):
+    calls = []
+    ahead = pool.prefetch(_sleep, 0.5)
+    deadline = time.monotonic() + 60
+    while not os.path.exists(ahead._claim) and time.monotonic() < deadline:  # until the worker has begun it
+        time.sleep(0.01)
+    assert ahead.result(meanwhile=lambda: calls.append(ahead._future.done())) == 0.5
+    assert calls == [False]  # called once, before the worker had finished
+    busy = pool.submit(_sleep, 1.0)
+    queued = pool.prefetch(_pid_and_square, 4)  # not begun: computed here at once, nothing to do meanwhile
+    assert queued.result(meanwhile=lambda: calls.append("queued"))[1] == 16
+    assert busy.result() == 1.0
+    done = pool.prefetch(_pid_and_square, 3)
+    while not done._future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert done.result(meanwhile=lambda: calls.append("done"))[1] == 9
+    assert calls == [False]
+
+
 def test_a_pool_only_where_it_pays_and_may_start():
     assert not W.wanted(1, 1000)  # one job: everything here
     assert not W.wanted(2, W.MIN_PIECES - 1)  # too little work for a worker's start-up

@@ -85,9 +85,10 @@ def _warm() -> int:
     return os.getpid()
 
 
-def _warm_rest():
-    """What the later stages load on first use (matplotlib's text outlines for the labels, ~0.4 s), queued behind
-    the first work a worker is given so as not to hold it up."""
+def warm_rest():
+    """What the later stages load on first use (matplotlib's text outlines for the labels, ~0.4 s): in a worker,
+    queued behind the first work it is given so as not to hold it up; in this process, while it waits for a
+    prefetch (Prefetch.result's meanwhile), work it would otherwise do later."""
     from . import assembly, check, export, label, preview  # noqa: F401
 
     label.min_height_mm("p0-0-0")
@@ -124,12 +125,12 @@ class Workers:
         self._warmed_rest = False
 
     def _warm_rest(self):
-        """_warm_rest once in each worker, queued behind whatever was submitted so far."""
+        """warm_rest once in each worker, queued behind whatever was submitted so far."""
         if not self._warmed_rest:
             self._warmed_rest = True
             for _ in range(self.size):
                 try:
-                    self._executor.submit(_warm_rest)
+                    self._executor.submit(warm_rest)
                 except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
                     return
 
@@ -306,8 +307,12 @@ class Prefetch:
             self._future = None
         workers._warm_rest()
 
-    def result(self):
+    def result(self, meanwhile: Callable | None = None):
+        """The result, from the worker that computed it or computed here. meanwhile(): called here first when a
+        worker is still computing it, so that this process does work it has to do anyway instead of idling."""
         if self._future is not None and (self._future.done() or not _claim(self._claim)):
+            if meanwhile is not None and not self._future.done():
+                meanwhile()
             try:
                 ran, value = self._future.result()
             except concurrent.futures.process.BrokenProcessPool as e:
