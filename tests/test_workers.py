@@ -274,3 +274,29 @@ def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
     assert files[1] == files[2] and any(f.startswith("pieces/") for f in files[1])
     assert reports[1] == reports[2]
     assert md[1] == md[2]
+
+
+def _write_picture(path, text, pause):
+    time.sleep(pause)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(f"{text} {os.getpid()}")
+
+
+@pytest.mark.parametrize("worker_busy", [False, True])
+def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, worker_busy):
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.export import write_build
+
+    pieces = make_pieces()
+    busy = pool.submit(_sleep, 1.0) if worker_busy else None
+    extras = {"a.txt": W.Remote(_write_picture, "first", 0.3), "steps/b.txt": W.Remote(_write_picture, "second", 0.3)}
+    out = write_build(tmp_path / "c", pieces, make_report(pieces), extras=extras, workers=pool)
+    drawn = {rel: (out / rel).read_text(encoding="utf-8").split() for rel in extras}
+    assert [d[0] for d in drawn.values()] == ["first", "second"]
+    where = [int(d[1]) == os.getpid() for d in drawn.values()]
+    # the worker begins the first (on a slow machine maybe not in time); the last, not begun by the time the files
+    # are written, is drawn here; with the worker held up, both are drawn here rather than waited for
+    assert where[1] and (where[0] or not worker_busy)
+    if busy is not None:
+        assert busy.result() == 1.0

@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import DEFAULT_ACCENT, write_3mf
-from .workers import Remote, write_remote
+from .workers import Remote
 
 if TYPE_CHECKING:  # trimesh (~1.5 s to import) loads where a mesh is made: build() reads check_target from here
     import trimesh  # before it starts the workers, which are meant to start while this process loads
@@ -617,17 +617,15 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     try:
         report = dict(report)
         (tmp / "pieces").mkdir()
-        # the pictures, drawn in a worker while this process writes the rest (the same functions on the same data);
-        # of several, this process draws the first itself once the pieces are written, so that neither waits long
-        remote = [(w, tmp / rel) for rel, w in sorted((extras or {}).items())
-                  if workers is not None and isinstance(w, Remote)]
-        remote = remote[len(remote) > 1:]
-        for _, dest in remote:
-            dest.parent.mkdir(parents=True, exist_ok=True)
-        drawing = write_remote(workers, remote)
-        if drawing is not None:
-            pending.append(drawing)
-            extras = {rel: w for rel, w in extras.items() if not any(w is r for r, _ in remote)}
+        # the pictures, begun in the workers while this process writes the rest (the same functions on the same
+        # data); one no worker has begun by the time the files are written is drawn here (workers.Prefetch), so
+        # neither side idles while the other draws, whichever picture is the larger
+        ahead = []
+        for rel, w in sorted((extras or {}).items()):
+            if workers is not None and isinstance(w, Remote):
+                (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+                ahead.append((tmp / rel, workers.prefetch(w, tmp / rel)))
+        extras = {rel: w for rel, w in (extras or {}).items() if not (workers is not None and isinstance(w, Remote))}
         # the largest file first, so that the worker is busy from the start
         write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
               [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors, strict=True)],
@@ -656,6 +654,9 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
             dest = tmp / rel
             dest.parent.mkdir(parents=True, exist_ok=True)
             write(dest, writer, dest)
+        # the last first: the workers take them in order, so those not begun are at the back
+        for dest, picture in reversed(ahead):
+            named(dest, picture.result)
         for job in pending:
             job.result()
         if report.get("preview") and not (tmp / report["preview"]).is_file():

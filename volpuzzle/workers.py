@@ -370,17 +370,3 @@ class Remote:
 
     def __call__(self, path):
         return self.fn(path, *self.args)
-
-
-def _run_all(calls):
-    """Several Remote writers in one task: pickled together, the meshes they share travel (and are remembered) once."""
-    for writer, path in calls:
-        writer(path)
-
-
-def write_remote(workers: Workers | None, calls: list) -> concurrent.futures.Future | None:
-    """[(Remote, path)] written in a worker, as one task -> its Future; None when there is no started worker (the
-    caller writes them itself)."""
-    if workers is None or not calls:
-        return None
-    return workers.submit(_run_all, calls)
