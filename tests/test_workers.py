@@ -110,6 +110,30 @@ def test_face_gaps_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_tas
     assert [g[3] for g in check._face_gaps(meshes, 0.3, workers=pool)] == pytest.approx([0.1, 0.3], abs=1e-9)
 
 
+def _solid_of_shared(shared, k):
+    from volpuzzle.check import piece_solid
+
+    mesh = shared[k].mesh
+    return os.getpid(), id(mesh), id(piece_solid(mesh, f"p{k}")), np.asarray(mesh.bounds).tolist()
+
+
+def test_a_worker_keeps_one_mesh_and_its_solid_per_content_across_stages(pool, monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    boxes = [trimesh.creation.box(extents=(1.0 + k, 2.0, 3.0)) for k in range(3)]
+    first, again = (pool.map_pieces(_solid_of_shared, [0, 1, 2], shared=[W.MeshRef(b) for b in boxes], what="test")
+                    for _ in range(2))
+    assert all(a[0] != os.getpid() for a in first)
+    # the second stage's copies are the first's objects, with the solids already built
+    assert [a[1:3] for a in again] == [a[1:3] for a in first]
+    boxes[1].apply_translation([5.0, 0.0, 0.0])  # new content: a new object, its own solid
+    moved = pool.map_pieces(_solid_of_shared, [0, 1, 2], shared=[W.MeshRef(b) for b in boxes], what="test")
+    assert moved[1][1] != first[1][1] and moved[1][3] == np.asarray(boxes[1].bounds).tolist()
+    assert [m[1] for m in moved[::2]] == [a[1] for a in first[::2]]
+    # in this process meshes received never merge: two equal meshes stay two objects
+    back = pool.map_pieces(_mesh_volume, [W.MeshRef(boxes[0]), W.MeshRef(boxes[0].copy())], what="test")
+    assert back[0][0].mesh is not back[1][0].mesh
+
+
 def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
     with pytest.raises(SpecError, match=r"^grid: item three is refused \(got 3, expected anything else\)$"):
@@ -295,8 +319,7 @@ def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, wor
     drawn = {rel: (out / rel).read_text(encoding="utf-8").split() for rel in extras}
     assert [d[0] for d in drawn.values()] == ["first", "second"]
     where = [int(d[1]) == os.getpid() for d in drawn.values()]
-    # the worker begins the first (on a slow machine maybe not in time); the last, not begun by the time the files
-    # are written, is drawn here; with the worker held up, both are drawn here rather than waited for
-    assert where[1] and (where[0] or not worker_busy)
+    # the first is drawn here; the worker begins the other, or, held up, leaves it to be drawn here, not waited for
+    assert where[0] and (where[1] or not worker_busy)
     if busy is not None:
         assert busy.result() == 1.0

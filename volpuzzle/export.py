@@ -617,15 +617,15 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     try:
         report = dict(report)
         (tmp / "pieces").mkdir()
-        # the pictures, begun in the workers while this process writes the rest (the same functions on the same
-        # data); one no worker has begun by the time the files are written is drawn here (workers.Prefetch), so
-        # neither side idles while the other draws, whichever picture is the larger
+        # the pictures: this process draws the first itself once the pieces are written (the preview; the steps
+        # drawn here instead cost it more, 1.3 against 1.0 CPU s at 32 pieces), the rest are begun in the workers
+        # meanwhile, and one no worker has begun by then is drawn here too (workers.Prefetch) rather than waited for
+        remote = [rel for rel, w in sorted((extras or {}).items()) if workers is not None and isinstance(w, Remote)]
         ahead = []
-        for rel, w in sorted((extras or {}).items()):
-            if workers is not None and isinstance(w, Remote):
-                (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-                ahead.append((tmp / rel, workers.prefetch(w, tmp / rel)))
-        extras = {rel: w for rel, w in (extras or {}).items() if not (workers is not None and isinstance(w, Remote))}
+        for rel in remote[1:]:
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            ahead.append((tmp / rel, workers.prefetch(extras[rel], tmp / rel)))
+        extras = {rel: w for rel, w in (extras or {}).items() if rel not in remote[1:]}
         # the largest file first, so that the worker is busy from the start
         write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
               [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors, strict=True)],
