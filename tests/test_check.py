@@ -185,3 +185,17 @@ def test_face_gaps_after_a_touching_pair_keep_the_least_gap_and_its_pair():
     # without the touching pair every gap is the engine's
     del meshes["p0"]
     assert [g[3] for g in _face_gaps(meshes, 0.3)] == pytest.approx([0.1, 0.2], abs=1e-9)
+
+
+def test_face_gaps_engine_gap_is_the_whole_reach_gap_where_no_vertices_face_each_other():
+    from volpuzzle.check import _face_gaps, piece_solid
+
+    # p1's vertices sit between p0's (another triangulation, shifted across the face): the least gap, 0.1 mm, is
+    # between a vertex and a triangle, less than the closest vertices, and the engine's search must still reach it
+    p0 = _slab(0, 10)
+    p1 = trimesh.creation.box([10, 10, 10]).subdivide().subdivide().apply_translation([15.1, 0.37, 0.29])
+    meshes = {"p0": p0, "p1": p1}
+    (gap,) = _face_gaps(meshes, 0.3)
+    full = float(piece_solid(p0, "p0").min_gap(piece_solid(p1, "p1"), 0.9))
+    assert full == pytest.approx(0.1, abs=1e-9)
+    assert gap[3] == full  # the same float as the engine's over the whole reach

@@ -84,6 +84,56 @@ def test_meshes_travel_as_arrays_and_come_back_equal(pool, monkeypatch):
         assert volume == pytest.approx(box.volume)
 
 
+def _slab(x0, x1, y=0.0):
+    """A 10 x 10 box from x0 to x1 along x, moved by y across, its faces triangulated every ~1.25 mm."""
+    box = trimesh.creation.box([x1 - x0, 10, 10]).subdivide().subdivide().subdivide()
+    return box.apply_translation([(x0 + x1) / 2, y, 0])
+
+
+@pytest.mark.parametrize("per_task", [1, 2, 8])
+def test_face_gaps_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_task):
+    from volpuzzle import check
+
+    # p0 | p1 touch; p2 stands 0.1 mm off p1 but half a vertex spacing across, so its closest vertices (what the
+    # serial rule keeps after a touching pair) are ~0.51 mm apart: a chunk measured apart from the touching pair
+    # must still give that, not the engine's 0.1
+    meshes = {"p0": _slab(0, 10), "p1": _slab(10, 20), "p2": _slab(20.1, 30, 0.5), "p3": _slab(30.3, 40)}
+    serial = check._face_gaps(meshes, 0.3)
+    assert [g[:2] for g in serial] == [("p0", "p1"), ("p1", "p2"), ("p2", "p3")]
+    assert serial[0][3] == 0.0 and serial[1][3] > 0.4
+    monkeypatch.setattr(check, "_GAP_PAIRS_PER_TASK", per_task)
+    for main_takes in (False, True):
+        monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
+        assert check._face_gaps(meshes, 0.3, workers=pool) == serial
+    del meshes["p0"]  # without the touching pair every gap is the engine's, wherever measured
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    assert [g[3] for g in check._face_gaps(meshes, 0.3, workers=pool)] == pytest.approx([0.1, 0.3], abs=1e-9)
+
+
+def _solid_of_shared(shared, k):
+    from volpuzzle.check import piece_solid
+
+    mesh = shared[k].mesh
+    return os.getpid(), id(mesh), id(piece_solid(mesh, f"p{k}")), np.asarray(mesh.bounds).tolist()
+
+
+def test_a_worker_keeps_one_mesh_and_its_solid_per_content_across_stages(pool, monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    boxes = [trimesh.creation.box(extents=(1.0 + k, 2.0, 3.0)) for k in range(3)]
+    first, again = (pool.map_pieces(_solid_of_shared, [0, 1, 2], shared=[W.MeshRef(b) for b in boxes], what="test")
+                    for _ in range(2))
+    assert all(a[0] != os.getpid() for a in first)
+    # the second stage's copies are the first's objects, with the solids already built
+    assert [a[1:3] for a in again] == [a[1:3] for a in first]
+    boxes[1].apply_translation([5.0, 0.0, 0.0])  # new content: a new object, its own solid
+    moved = pool.map_pieces(_solid_of_shared, [0, 1, 2], shared=[W.MeshRef(b) for b in boxes], what="test")
+    assert moved[1][1] != first[1][1] and moved[1][3] == np.asarray(boxes[1].bounds).tolist()
+    assert [m[1] for m in moved[::2]] == [a[1] for a in first[::2]]
+    # in this process meshes received never merge: two equal meshes stay two objects
+    back = pool.map_pieces(_mesh_volume, [W.MeshRef(boxes[0]), W.MeshRef(boxes[0].copy())], what="test")
+    assert back[0][0].mesh is not back[1][0].mesh
+
+
 def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
     with pytest.raises(SpecError, match=r"^grid: item three is refused \(got 3, expected anything else\)$"):
@@ -122,6 +172,25 @@ def test_a_prefetch_no_worker_began_is_computed_here(pool):
     assert value == 25 and pid == os.getpid()
     assert busy.result() == 1.0
     assert ahead._future.result() == (False, None)
+
+
+def test_a_prefetch_runs_meanwhile_here_only_while_a_worker_computes_it(pool):
+    calls = []
+    ahead = pool.prefetch(_sleep, 0.5)
+    deadline = time.monotonic() + 60
+    while not os.path.exists(ahead._claim) and time.monotonic() < deadline:  # until the worker has begun it
+        time.sleep(0.01)
+    assert ahead.result(meanwhile=lambda: calls.append(ahead._future.done())) == 0.5
+    assert calls == [False]  # called once, before the worker had finished
+    busy = pool.submit(_sleep, 1.0)
+    queued = pool.prefetch(_pid_and_square, 4)  # not begun: computed here at once, nothing to do meanwhile
+    assert queued.result(meanwhile=lambda: calls.append("queued"))[1] == 16
+    assert busy.result() == 1.0
+    done = pool.prefetch(_pid_and_square, 3)
+    while not done._future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert done.result(meanwhile=lambda: calls.append("done"))[1] == 9
+    assert calls == [False]
 
 
 def test_a_pool_only_where_it_pays_and_may_start():
@@ -229,3 +298,28 @@ def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
     assert files[1] == files[2] and any(f.startswith("pieces/") for f in files[1])
     assert reports[1] == reports[2]
     assert md[1] == md[2]
+
+
+def _write_picture(path, text, pause):
+    time.sleep(pause)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(f"{text} {os.getpid()}")
+
+
+@pytest.mark.parametrize("worker_busy", [False, True])
+def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, worker_busy):
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.export import write_build
+
+    pieces = make_pieces()
+    busy = pool.submit(_sleep, 1.0) if worker_busy else None
+    extras = {"a.txt": W.Remote(_write_picture, "first", 0.3), "steps/b.txt": W.Remote(_write_picture, "second", 0.3)}
+    out = write_build(tmp_path / "c", pieces, make_report(pieces), extras=extras, workers=pool)
+    drawn = {rel: (out / rel).read_text(encoding="utf-8").split() for rel in extras}
+    assert [d[0] for d in drawn.values()] == ["first", "second"]
+    where = [int(d[1]) == os.getpid() for d in drawn.values()]
+    # the first is drawn here; the worker begins the other, or, held up, leaves it to be drawn here, not waited for
+    assert where[0] and (where[1] or not worker_busy)
+    if busy is not None:
+        assert busy.result() == 1.0

@@ -627,13 +627,14 @@ def bed_contact_problem(under) -> str:
     return f"pieces {', '.join(under)} rest on less than {BED_MIN_MM2:g} mm^2 of the bed"
 
 
-def check_printability(report: dict, meshes: dict) -> dict:
+def check_printability(report: dict, meshes: dict, workers=None) -> dict:
     """Printability from the files: bed contact of each piece in its print orientation (report.json pieces[].print
     .plate_transform applied to the piece file), the gap between neighbouring pieces (at least the face clearance,
     less what the joints' own clearances allow), pin sizes against the printable minimum, a label per piece.
     meshes: {piece id: closed trimesh in mm}. -> {"bed_contact_mm2": {id: mm^2}, "min_bed_contact_mm2",
     "pieces_under_bed_minimum", "min_face_gap_mm", "face_gap_pair", "unlabelled", "pins_up", "pins",
-    "failures": [sentences], "warnings": [sentences]}"""
+    "failures": [sentences], "warnings": [sentences]}. workers: a volpuzzle.workers.Workers that measures some of
+    the face gaps (the same figures)."""
     failures, warnings = [], []
     entries = {e.get("id"): e for e in report.get("pieces") or []}
     contact, under = {}, []
@@ -671,7 +672,7 @@ def check_printability(report: dict, meshes: dict) -> dict:
                         f"{thin[0].get('hole_piece')}) have pins below the printable minimum (radius down to {r:g} "
                         f"mm, length down to {length:g} mm; expected at least {PIN_MIN_RADIUS_MM:g} and "
                         f"{PIN_MIN_LENGTH_MM:g} mm)")
-    gaps = _face_gaps(meshes, face_clearance, _shared_faces(report)) if face_clearance > 0 else []
+    gaps = _face_gaps(meshes, face_clearance, _shared_faces(report), workers) if face_clearance > 0 else []
     closed = [g for g in gaps if g[2] < 0.7 * face_clearance]
     if closed:
         g = min(closed, key=lambda x: x[2])
@@ -721,7 +722,7 @@ def _shared_faces(report):
     return pairs
 
 
-def _face_gaps(meshes, face_clearance, shared=None):
+def _face_gaps(meshes, face_clearance, shared=None, workers=None):
     """Neighbours (pieces whose boxes come within 3 face clearances and, given `shared`, that share a cut face:
     pieces meeting only at a pole or along an edge have no faces to hold apart) -> [(id, id, median gap, smallest
     gap) mm].
@@ -729,36 +730,70 @@ def _face_gaps(meshes, face_clearance, shared=None):
     nearest such vertex: both sides of a cut face share one triangulation, each set back by half the clearance, so
     matching vertices sit one clearance apart, and 0 where the faces close. The smallest gap is the engine's, over
     the whole surfaces, up to the first pair that touches (0): after it, the closest vertices (an upper bound), since
-    what is used of the smallest gaps is their least and the first pair with it, which no later pair can change."""
-    from scipy.spatial import cKDTree
+    what is used of the smallest gaps is their least and the first pair with it, which no later pair can change.
+    workers: a volpuzzle.workers.Workers that measures some of the pairs (the same figures, in the same order)."""
+    from .workers import MeshRef, map_pieces
 
     ids = sorted(meshes)
     reach = 3.0 * face_clearance
     bounds = np.array([meshes[i].bounds for i in ids]) if ids else np.zeros((0, 2, 3))
-    out = []
-    touching = False
-    trees = {}
+    pairs = []
     for i in range(len(ids)):
         # the boxes of every later piece at once: a Python test per pair is most of the check at 1024 pieces
         lo = np.maximum(bounds[i, 0], bounds[i + 1:, 0]) - reach
         hi = np.minimum(bounds[i, 1], bounds[i + 1:, 1]) + reach
         near = i + 1 + np.flatnonzero(~np.any(hi < lo, axis=1))
-        for k in near.tolist():
-            if shared is not None and frozenset((ids[i], ids[k])) not in shared:
-                continue
-            if ids[k] not in trees:  # each piece's tree is built once, not once per neighbour
-                trees[ids[k]] = cKDTree(np.asarray(meshes[ids[k]].vertices))
-            va = np.asarray(meshes[ids[i]].vertices)
-            dist, _ = trees[ids[k]].query(va, distance_upper_bound=reach)
-            dist = dist[np.isfinite(dist)]
-            if len(dist) < 8:
-                continue  # the pieces do not share a face
-            if touching:  # the engine's gap costs a Boolean and a search (~10 ms a pair)
-                smallest = float(dist.min())
-            else:
-                a, b = piece_solid(meshes[ids[i]], ids[i]), piece_solid(meshes[ids[k]], ids[k])
-                smallest = (float(a.min_gap(b, reach)) if not (isinstance(a, str) or isinstance(b, str))
-                            else float("nan"))
-                touching = smallest == 0.0
-            out.append((ids[i], ids[k], float(np.median(dist)), smallest))
+        pairs.extend((ids[i], ids[k]) for k in near.tolist()
+                     if shared is None or frozenset((ids[i], ids[k])) in shared)
+    # in pair order (by piece id, so that a chunk's pieces are mostly the same few): each chunk's pieces travel once
+    chunks = [pairs[c:c + _GAP_PAIRS_PER_TASK] for c in range(0, len(pairs), _GAP_PAIRS_PER_TASK)]
+    used = {pid for pair in pairs for pid in pair}
+    found = map_pieces(workers, _gaps_of, chunks, shared=({pid: MeshRef(meshes[pid]) for pid in used}, reach),
+                       what="check")
+    out = []
+    touching = False
+    for (a, b), gap in zip(pairs, [g for chunk in found for g in chunk], strict=True):
+        if gap is None:
+            continue
+        median, engine, closest = gap
+        # a chunk measured with the engine up to its own first touching pair; the serial rule is the global one
+        smallest = closest if touching else engine
+        touching = touching or smallest == 0.0
+        out.append((a, b, median, smallest))
+    return out
+
+
+_GAP_PAIRS_PER_TASK = 8  # face-gap pairs per worker task: ~150 ms of engine gaps
+_GAP_SEARCH_MARGIN = 1e-6  # mm the engine searches past the closest vertices: well above their rounding
+
+
+def _gaps_of(shared, pairs):
+    """[(median gap, engine's smallest gap, closest vertices) mm, or None for pieces that share no face] of pairs
+    (id, id) of _face_gaps, wherever they are measured: shared ({id: MeshRef}, reach mm). After a pair that touches,
+    the engine's gap is not asked again (~10 ms a pair): the closest vertices stand for it, as _face_gaps uses them."""
+    from scipy.spatial import cKDTree
+
+    refs, reach = shared
+    trees = {}  # each piece's tree is built once, not once per neighbour
+    out = []
+    touching = False
+    for a, b in pairs:
+        if b not in trees:
+            trees[b] = cKDTree(np.asarray(refs[b].mesh.vertices))
+        dist, _ = trees[b].query(np.asarray(refs[a].mesh.vertices), distance_upper_bound=reach)
+        dist = dist[np.isfinite(dist)]
+        if len(dist) < 8:
+            out.append(None)  # the pieces do not share a face
+            continue
+        closest = float(dist.min())
+        if touching:
+            engine = closest
+        else:
+            sa, sb = piece_solid(refs[a].mesh, a), piece_solid(refs[b].mesh, b)
+            # the surfaces come no further apart than their closest vertices, so the engine searching that far
+            # (a hair more, for rounding) finds the same least gap as searching the whole reach, in ~20% less time
+            engine = (float(sa.min_gap(sb, min(reach, closest + _GAP_SEARCH_MARGIN)))
+                      if not (isinstance(sa, str) or isinstance(sb, str)) else float("nan"))
+            touching = engine == 0.0
+        out.append((float(np.median(dist)), engine, closest))
     return out

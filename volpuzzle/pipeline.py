@@ -172,7 +172,8 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
         # labels) is judged before it is written, so a build never passes what its own check refuses
-        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces})
+        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces},
+                                                               workers=workers)
     require_printable(spec, report)
     with timer("export", progress):
         report["timings_s"] = timer.timings
@@ -199,6 +200,7 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
     model whose pieces only lack volume is composed again at a finer tessellation tolerance, up to three times."""
     from .compose import compose, face_clearance_volume
     from .joint import gap_volume
+    from .workers import warm_rest
 
     clearance, tolerance = _face_clearance(spec, s), spec.output.tolerance
     mesh_report, sampling, face_gaps = None, None, 0.0
@@ -215,7 +217,9 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
         gaps = sum(gap_volume(j) for j in s.joints)
         for attempt in range(3):
             with timer("compose", progress):
-                ahead = s.sampling.result() if attempt == 0 and s.sampling is not None else None
+                # while a worker still samples, this process loads what the later stages need (labels' outlines)
+                ahead = (s.sampling.result(meanwhile=warm_rest) if attempt == 0 and s.sampling is not None
+                         else None)
                 pieces = compose(s.tiling, s.fmap, s.joints, tolerance, jobs=jobs, progress=progress.piece,
                                  sampling=ahead, face_clearance=clearance, workers=workers)
             sampling = pieces.sampling  # the finishing stages return plain lists

@@ -21,12 +21,14 @@ item needs (`shared`: the tiling, the map, the joints) are pickled once into a f
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
 import itertools
 import multiprocessing
 import os
 import pickle
 import shutil
 import tempfile
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -58,6 +60,7 @@ class _Handle:
 
 
 _CACHE: dict[int, object] = {}  # in a worker: the shared inputs read so far, by token (the last two are kept)
+_IN_WORKER = False  # set by _init_worker
 
 
 def _init_worker():
@@ -66,6 +69,8 @@ def _init_worker():
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    global _IN_WORKER
+    _IN_WORKER = True
 
 
 def _warm() -> int:
@@ -85,9 +90,10 @@ def _warm() -> int:
     return os.getpid()
 
 
-def _warm_rest():
-    """What the later stages load on first use (matplotlib's text outlines for the labels, ~0.4 s), queued behind
-    the first work a worker is given so as not to hold it up."""
+def warm_rest():
+    """What the later stages load on first use (matplotlib's text outlines for the labels, ~0.4 s): in a worker,
+    queued behind the first work it is given so as not to hold it up; in this process, while it waits for a
+    prefetch (Prefetch.result's meanwhile), work it would otherwise do later."""
     from . import assembly, check, export, label, preview  # noqa: F401
 
     label.min_height_mm("p0-0-0")
@@ -124,12 +130,12 @@ class Workers:
         self._warmed_rest = False
 
     def _warm_rest(self):
-        """_warm_rest once in each worker, queued behind whatever was submitted so far."""
+        """warm_rest once in each worker, queued behind whatever was submitted so far."""
         if not self._warmed_rest:
             self._warmed_rest = True
             for _ in range(self.size):
                 try:
-                    self._executor.submit(_warm_rest)
+                    self._executor.submit(warm_rest)
                 except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
                     return
 
@@ -306,8 +312,12 @@ class Prefetch:
             self._future = None
         workers._warm_rest()
 
-    def result(self):
+    def result(self, meanwhile: Callable | None = None):
+        """The result, from the worker that computed it or computed here. meanwhile(): called here first when a
+        worker is still computing it, so that this process does work it has to do anyway instead of idling."""
         if self._future is not None and (self._future.done() or not _claim(self._claim)):
+            if meanwhile is not None and not self._future.done():
+                meanwhile()
             try:
                 ran, value = self._future.result()
             except concurrent.futures.process.BrokenProcessPool as e:
@@ -348,10 +358,28 @@ class MeshRef:
         return _mesh_ref, (self.mesh.vertices.view(np.ndarray), self.mesh.faces.view(np.ndarray))
 
 
+# In a worker: the meshes it received that are still held (by the shared inputs in _CACHE), by content. A piece
+# travels to the workers once per stage (its overlaps, then its face gaps, its pictures); arriving as the same object
+# it keeps what was found of it (geometry.memo: its solid), so a later stage does not rebuild the solids an earlier
+# one built (~6 ms a piece), and the worker takes its share of the items sooner.
+_RECEIVED: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
+
+
 def _mesh_ref(vertices, faces):
     import trimesh
 
-    return MeshRef(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
+    if not _IN_WORKER:  # in this process every mesh received stays its own object: they are the build's records
+        return MeshRef(trimesh.Trimesh(vertices=vertices, faces=faces, process=False))
+    digest = hashlib.blake2b(f"{vertices.shape}{vertices.dtype}{faces.shape}{faces.dtype}".encode(), digest_size=16)
+    digest.update(np.ascontiguousarray(vertices))
+    digest.update(np.ascontiguousarray(faces))
+    key = digest.digest()
+    mesh = _RECEIVED.get(key)
+    # compared in full: a stage may have edited the mesh in place since, and a digest is no proof of equal content
+    if mesh is None or not (np.array_equal(mesh.vertices, vertices) and np.array_equal(mesh.faces, faces)):
+        mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        _RECEIVED[key] = mesh
+    return MeshRef(mesh)
 
 
 class Remote:
@@ -365,17 +393,3 @@ class Remote:
 
     def __call__(self, path):
         return self.fn(path, *self.args)
-
-
-def _run_all(calls):
-    """Several Remote writers in one task: pickled together, the meshes they share travel (and are remembered) once."""
-    for writer, path in calls:
-        writer(path)
-
-
-def write_remote(workers: Workers | None, calls: list) -> concurrent.futures.Future | None:
-    """[(Remote, path)] written in a worker, as one task -> its Future; None when there is no started worker (the
-    caller writes them itself)."""
-    if workers is None or not calls:
-        return None
-    return workers.submit(_run_all, calls)
