@@ -364,6 +364,9 @@ def _report_fields(report, where: str):
             raise bad(f"pieces[{k}].file", "not a file name", rel, "a relative path such as pieces/p0-0-0.stl")
         if pid in ids:
             raise bad(f"pieces[{k}].id", "given twice", pid, "each piece once")
+        vol = e.get("volume_mm3")
+        if vol is not None and not _finite(vol):  # the joint figures add these up
+            raise bad(f"pieces[{k}].volume_mm3", "not a volume", vol, "a finite number of mm^3, or nothing")
         key = rel.replace("\\", "/").lstrip("./")
         if key in files:
             raise bad(f"pieces[{k}].file", "the file of another piece too", rel, "one file per piece")
