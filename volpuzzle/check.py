@@ -414,7 +414,53 @@ def _report_fields(report, where: str):
             raise bad(f"{f}.clearance_mm", "not a clearance", c, "a finite number of mm, >= 0")
         if not isinstance(j.get("style", "pin"), str):
             raise bad(f"{f}.style", "not a joint style", j.get("style"), "pin or dowel")
+    _check_report_shapes(report, bad)
     return pieces, float(expected), float(tol), joints
+
+
+def _check_report_shapes(report, bad):
+    """The report fields that the joint-graph and printability checks read beyond _report_fields' own, checked for
+    their type, so that an edited report.json gets a line naming the field and not an internal error."""
+    def obj(field, value):
+        if value is not None and not isinstance(value, dict):
+            raise bad(field, "not an object", value, "a JSON object")
+        return value or {}
+
+    def texts(field, value):
+        if value is not None and not (isinstance(value, list) and all(isinstance(x, str) for x in value)):
+            raise bad(field, "not a list of names", value, "a list of texts")
+
+    for k, e in enumerate(report["pieces"]):
+        pose = obj(f"pieces[{k}].print", e.get("print"))
+        t = pose.get("plate_transform")
+        if t is not None and not (isinstance(t, list) and len(t) == 4 and all(
+                isinstance(row, list) and len(row) == 4 and all(_finite(x) for x in row) for row in t)):
+            raise bad(f"pieces[{k}].print.plate_transform", "not a transform", t, "4 rows of 4 finite numbers")
+        obj(f"pieces[{k}].label", e.get("label"))
+    spec = obj("spec", report.get("spec"))
+    joints = obj("spec.joints", spec.get("joints"))
+    texts("spec.joints.allow", joints.get("allow"))
+    if not isinstance(joints.get("style", "pin"), str):
+        raise bad("spec.joints.style", "not a joint style", joints.get("style"), "pin, dowel or none")
+    out = obj("spec.output", spec.get("output"))
+    if not _finite(out.get("face_clearance", 0.0)):
+        raise bad("spec.output.face_clearance", "not a clearance", out.get("face_clearance"), "a number of mm")
+    if not _finite((report.get("checks") or {}).get("face_clearance_mm", 0.0) or 0.0):
+        raise bad("checks.face_clearance_mm", "not a clearance", report["checks"]["face_clearance_mm"],
+                  "a number of mm")
+    for field, contacts in (("contacts", report.get("contacts")),
+                            ("mesh.contacts", obj("mesh", report.get("mesh")).get("contacts"))):
+        if contacts is None:
+            continue
+        if not isinstance(contacts, list):
+            raise bad(field, "not a list", contacts, "a list of contact objects")
+        for k, c in enumerate(contacts):
+            obj(f"{field}[{k}]", c)
+            if c is None:
+                raise bad(f"{field}[{k}]", "not an object", c, "an object with pieces, room, pinned")
+            texts(f"{field}[{k}].pieces", c.get("pieces"))
+    assembly = obj("assembly", report.get("assembly"))
+    texts("assembly.stuck", assembly.get("stuck"))
 
 
 def _short(value) -> str:
@@ -606,9 +652,15 @@ def fit_line(fit):
     """One line saying the pin size and fit."""
     if fit.get("style") not in ("pin", "dowel"):
         return f"no pins; face clearance {fit['face_clearance_mm']:g} mm"
-    return (f"{fit['style']}s {fit['pin_diameter_mm']:g} mm across, {fit['pin_length_mm']:g} mm long, clearance "
+    line = (f"{fit['style']}s {fit['pin_diameter_mm']:g} mm across, {fit['pin_length_mm']:g} mm long, clearance "
             f"{fit['clearance_mm']:g} mm radial and {fit['axial_clearance_mm']:g} mm at the tip; face clearance "
             f"{fit['face_clearance_mm']:g} mm")
+    s = fit.get("shrunk")
+    if s:
+        asked = " and ".join(f"{k} {s[f'asked_{k}_mm']:g} mm" for k in ("radius", "length")
+                             if s.get(f"asked_{k}_mm") is not None)
+        line += f"; {s['joints']} of {s['of']} shrunk to fit their faces (joints asked {asked})"
+    return line
 
 
 def piece_bed_contact(mesh, transform, pid="piece"):
