@@ -126,7 +126,7 @@ def test_a_fold_that_no_thickness_mends_says_so_and_not_a_smaller_thickness(monk
     # message asked for "a smaller thickness mm, the thickest shell that certifies" with no number in it
     import volpuzzle.shell as shell
 
-    monkeypatch.setattr(shell, "_thickest", lambda *a, **k: 0.0)  # what the bisection finds on such a surface
+    monkeypatch.setattr(shell, "_thickest", lambda *_args, **_kw: 0.0)  # what the bisection finds on such a surface
     with pytest.raises(ModelError) as e:
         make_shell(_sphere_surface(40.0), 60.0, target=0.1, side="inward")  # the wall crosses the centre
     msg = str(e.value)
