@@ -148,6 +148,13 @@ def test_check_names_a_report_field_of_the_wrong_type(folder, change, words):
     refused(["check", str(folder)], *words)
 
 
+def test_check_fails_a_report_whose_piece_volume_is_not_its_files(folder):
+    # the sum still matches the model, so only the per-piece figure (what report.md shows) betrays the edit
+    assert check_directory(folder)["passed"]
+    _edit_report(folder, lambda r: r["pieces"][0].update(volume_mm3=2 * r["pieces"][0]["volume_mm3"]))
+    refused(["check", str(folder)], "pieces[0].volume_mm3", "p0-0-0 2000 mm^3", "holds 1000 mm^3")
+
+
 def test_check_refuses_a_5000_digit_number(folder):
     text = (folder / "report.json").read_text()
     (folder / "report.json").write_text(text.replace('"volume_mm3": 2000.0', '"volume_mm3": 1' + "0" * 5000, 1))
