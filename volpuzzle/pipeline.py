@@ -145,6 +145,9 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
+    if seed is not None and spec.randomize is None:  # a user passing a seed expects it to change the pieces
+        print(f"warning: --seed {seed} changes nothing: the spec does not randomize (got no randomize or amplitude 0, "
+              f"expected randomize: {{amplitude: 0.25}} for a seed to matter)", file=sys.stderr)
     target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
     jobs = jobs or os.cpu_count() or 1
     # started first, so that the workers' start-up runs on the other cores while this process loads and plans
