@@ -542,7 +542,8 @@ def check_joint_graph(report: dict):
     pieces = [p.get("id") for p in report.get("pieces") or []]
     edges = [(j.get("pin_piece"), j.get("hole_piece")) for j in report.get("joints") or []]
     failures = []
-    problem = graph_problem(pieces, edges, report.get("contacts") or (), style, allow)
+    randomized = ((report.get("randomize") or {}).get("amplitude") or 0) != 0
+    problem = graph_problem(pieces, edges, report.get("contacts") or (), style, allow, randomized=randomized)
     if problem:
         failures.append(problem)
     assembly = report.get("assembly") or {}
