@@ -199,3 +199,33 @@ def test_face_gaps_engine_gap_is_the_whole_reach_gap_where_no_vertices_face_each
     full = float(piece_solid(p0, "p0").min_gap(piece_solid(p1, "p1"), 0.9))
     assert full == pytest.approx(0.1, abs=1e-9)
     assert gap[3] == full  # the same float as the engine's over the whole reach
+
+
+def test_a_snap_joint_fits_its_own_necked_hole():
+    # `volpuzzle check` of a built snap-pin puzzle failed every joint: its room test was a plain cylinder of the
+    # pin's radius, which the snap hole's neck (0.9 r near the tip) cuts into
+    import manifold3d as m3
+    import trimesh
+
+    from volpuzzle.check import check_joints
+    from volpuzzle.joint import _snap_profile
+
+    r, length, cl, axial = 1.5, 3.0, 0.15, 0.3
+
+    def revolved(grow, extra):
+        prof = _snap_profile(r, length, 1.0, grow=grow, extra=extra)
+        return m3.Manifold.revolve(m3.CrossSection([[(0.0, -1.0)] + prof + [(0.0, prof[-1][1])]]), 64)
+
+    def mesh(solid):
+        out = solid.to_mesh()
+        return trimesh.Trimesh(out.vert_properties[:, :3], out.tri_verts, process=True)
+
+    below = m3.Manifold.cube([10, 10, 5], True).translate([0, 0, -2.5])
+    above = m3.Manifold.cube([10, 10, 5], True).translate([0, 0, 2.5])
+    meshes = {"a": mesh(below + revolved(0.0, 0.0)), "b": mesh(above - revolved(cl, axial))}
+    joint = {"pin_piece": "a", "hole_piece": "b", "center_mm": [0, 0, 0], "direction": [0, 0, 1],
+             "radius_mm": r, "length_mm": length, "clearance_mm": cl, "style": "pin", "shape": "snap"}
+    assert check_joints(meshes, [joint]) == []
+    # a hole not dug is still found
+    meshes["b"] = mesh(above)
+    assert "does not fit its hole in b" in check_joints(meshes, [joint])[0]

@@ -123,6 +123,22 @@ def test_folding_model_refused_without_output(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_folding_model_message_names_the_file(tmp_path):
+    from volpuzzle.io import save_model
+    from volpuzzle.spline import Volume
+
+    g = np.linspace(0, 10, 4)
+    cp = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    cp[1, 1, 1, 0] = 100.0  # folds, as in test_folding_model_refused_without_output
+    k = [0, 0, 0, 0, 1, 1, 1, 1]
+    save_model(Volume((3, 3, 3), (k, k, k), cp), tmp_path / "fold.json")
+    spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": "fold.json"}))
+    result = run("validate", spec)
+    assert_one_line_error(result)
+    # the user has to know which file to mend: the key and the path come before the place of the fold
+    assert result.output.startswith(f"error: model.nurbs: {tmp_path / 'fold.json'}: model folds")
+
+
 def test_bad_model_file_in_spec(tmp_path):
     spec = write_spec(tmp_path, spec_dict(tmp_path, model={"nurbs": str(DATA / "gismo_thbcube.xml")}))
     result = run("build", spec)

@@ -135,10 +135,24 @@ def test_check_refuses_two_pieces_in_one_file(folder):
     (lambda r: r.update(joints=[{"pin_piece": "p0-0-0", "hole_piece": "p1-0-0", "center_mm": [0, 0],
                                   "direction": [1, 0, 0], "radius_mm": 1, "length_mm": 2}]), ["joints[0].center_mm"]),
     (lambda r: r.update(checks=[]), ["checks: not an object"]),
+    # fields only the joint-graph and printability checks read: an edited one was an internal error
+    (lambda r: r["pieces"][0].update(volume_mm3="abc"), ["pieces[0].volume_mm3", "'abc'"]),
+    (lambda r: r["pieces"][0].update(print={"plate_transform": "x"}), ["pieces[0].print.plate_transform"]),
+    (lambda r: r.update(contacts=[1]), ["contacts[0]: not an object"]),
+    (lambda r: r.update(assembly={"welded": True, "stuck": 5}), ["assembly.stuck"]),
+    (lambda r: r.update(spec="x"), ["spec: not an object"]),
+    (lambda r: r["spec"]["joints"].update(allow=5), ["spec.joints.allow"]),
 ])
 def test_check_names_a_report_field_of_the_wrong_type(folder, change, words):
     _edit_report(folder, change)
     refused(["check", str(folder)], *words)
+
+
+def test_check_fails_a_report_whose_piece_volume_is_not_its_files(folder):
+    # the sum still matches the model, so only the per-piece figure (what report.md shows) betrays the edit
+    assert check_directory(folder)["passed"]
+    _edit_report(folder, lambda r: r["pieces"][0].update(volume_mm3=2 * r["pieces"][0]["volume_mm3"]))
+    refused(["check", str(folder)], "pieces[0].volume_mm3", "p0-0-0 2000 mm^3", "holds 1000 mm^3")
 
 
 def test_check_refuses_a_5000_digit_number(folder):

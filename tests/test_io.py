@@ -431,6 +431,13 @@ def test_error_unrecognised_format(tmp_path):
     assert "unrecognised model format" in msg and ".itd" in msg
 
 
+def test_error_a_mesh_is_named_a_mesh(tmp_path):
+    # `volpuzzle info bunny.off` is what a new user tries first: say it is a mesh and how to use one
+    msg = model_error(write(tmp_path, "m.off", "OFF\n0 0 0\n"))
+    assert "m.off: a .off file is a triangle mesh, not a volume model" in msg
+    assert "model: {mesh: FILE" in msg and ".itd" in msg
+
+
 def test_error_patch_out_of_range():
     msg = model_error(DATA / "gismo_water_passage_3p.xml", patch=3)
     assert "patch" in msg and "3 patches" in msg and "0 to 2" in msg

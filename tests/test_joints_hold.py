@@ -119,6 +119,17 @@ def test_a_puzzle_in_two_parts_fails_with_one_line():
     assert J.graph_problem(ids, [], contacts, allow=("loose",)) is None
 
 
+def test_tilt_advice_names_randomize_amplitude_only_when_the_puzzle_is_randomized():
+    # an unrandomized 2 x 3 x 1 sphere shell fails on tilt: "a smaller randomize.amplitude" sent the user after a key
+    # the spec does not have
+    ids = ["p0-0-0", "p0-1-0"]
+    contacts = [{"pieces": ["p0-0-0", "p0-1-0"], "pinned": False,
+                 "reason": "tilt: its split slides at least 30.3 deg off the face's normal where a pin fits"}]
+    plain = J.graph_problem(ids, [], contacts, grid=(1, 2, 1), randomized=False)
+    assert "more pieces along the curved axis, or joints.allow: [loose]" in plain and "randomize" not in plain
+    assert "a smaller randomize.amplitude" in J.graph_problem(ids, [], contacts, grid=(1, 2, 1), randomized=True)
+
+
 def test_a_crowded_piece_is_not_sent_to_the_coarser_grid_its_neighbours_room_asks_for():
     # the 4x4x64 twisted torus: its first loose piece is crowded, other faces lack room, and the grid with room
     # (4x4x47) is crowded too, so the advice follows the reason shown, not the room of another face

@@ -98,3 +98,14 @@ def test_periodic_twisted_torus_small(tmp_path):
     assert report["checks"]["passed"]
     assert not report["assembly"]["welded"]
     assert sorted(report["assembly_order"]) == sorted(p["id"] for p in report["pieces"])
+
+
+def test_a_seed_without_randomize_is_said_to_change_nothing(tmp_path, capsys):
+    # the folder exists, so the build stops before any work: the warning comes first, from the spec alone
+    spec = write_spec(tmp_path, {"name": "q", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 1],
+                                 "output": {"directory": str(tmp_path / "out")}})
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "x").write_text("mine")
+    with pytest.raises(ExportError):
+        volpuzzle.build(spec, seed=3, jobs=1)
+    assert "warning: --seed 3 changes nothing: the spec does not randomize" in capsys.readouterr().err

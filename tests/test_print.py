@@ -342,6 +342,27 @@ def test_pins_below_the_printable_minimum_are_warned_of():
     assert "5 mm across, 6 mm long, clearance 0.15 mm radial" in fit_line(pin_fit("pin", 2.5, 6, 0.15, 0.3, 0.15))
 
 
+def test_pins_smaller_than_asked_are_said_in_the_fit():
+    from types import SimpleNamespace as NS
+
+    from volpuzzle.check import fit_line
+    from volpuzzle.report import fit
+
+    def joint(r, length):
+        return NS(radius=r, length=length, clearance=0.15, axial_clearance=0.3)
+
+    def spec(radius, length):
+        return NS(joints=NS(style="pin", radius=radius, length=length, clearance=0.15, axial_clearance=0.3))
+
+    joints = [joint(3.5, 11.65), joint(30.0, 100.0)]
+    got = fit(spec(30.0, 100.0), joints, 0.15)
+    assert got["shrunk"] == {"joints": 1, "of": 2, "asked_radius_mm": 30.0, "asked_length_mm": 100.0}
+    assert fit_line(got).endswith("; 1 of 2 shrunk to fit their faces (joints asked radius 30 mm and length 100 mm)")
+    # sizes the joint stage chose itself (none asked) are not 'shrunk'; neither are pins of the asked size
+    assert "shrunk" not in fit(spec(None, None), joints, 0.15)
+    assert "shrunk" not in fit_line(fit(spec(3.5, None), [joint(3.5, 11.65)], 0.15))
+
+
 def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
     from volpuzzle.check import check_printability
 

@@ -119,3 +119,16 @@ def test_outward_wall_counts_in_the_size(tmp_path):
     spec = _spec(tmp_path, "{surface: d.nurbs, thickness: 3, side: outward}")
     with pytest.raises(ModelError, match=r"model.size: 5 mm leaves no surface inside a wall 3 mm outside it"):
         load_shell(spec.model.shell, 1.0, 5.0, 0.5)
+
+
+def test_a_fold_that_no_thickness_mends_says_so_and_not_a_smaller_thickness(monkeypatch):
+    # the published GLScene beak (duck2) bends round its inside with a 0.02 mm radius: no shell certifies, and the
+    # message asked for "a smaller thickness mm, the thickest shell that certifies" with no number in it
+    import volpuzzle.shell as shell
+
+    monkeypatch.setattr(shell, "_thickest", lambda *_args, **_kw: 0.0)  # what the bisection finds on such a surface
+    with pytest.raises(ModelError) as e:
+        make_shell(_sphere_surface(40.0), 60.0, target=0.1, side="inward")  # the wall crosses the centre
+    msg = str(e.value)
+    assert "no shell of 0.1 mm or more certifies" in msg and "(got 60, expected a surface" in msg
+    assert "a smaller thickness" not in msg and " mm mm" not in msg

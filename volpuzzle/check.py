@@ -364,6 +364,9 @@ def _report_fields(report, where: str):
             raise bad(f"pieces[{k}].file", "not a file name", rel, "a relative path such as pieces/p0-0-0.stl")
         if pid in ids:
             raise bad(f"pieces[{k}].id", "given twice", pid, "each piece once")
+        vol = e.get("volume_mm3")
+        if vol is not None and not _finite(vol):  # the joint figures add these up
+            raise bad(f"pieces[{k}].volume_mm3", "not a volume", vol, "a finite number of mm^3, or nothing")
         key = rel.replace("\\", "/").lstrip("./")
         if key in files:
             raise bad(f"pieces[{k}].file", "the file of another piece too", rel, "one file per piece")
@@ -411,7 +414,53 @@ def _report_fields(report, where: str):
             raise bad(f"{f}.clearance_mm", "not a clearance", c, "a finite number of mm, >= 0")
         if not isinstance(j.get("style", "pin"), str):
             raise bad(f"{f}.style", "not a joint style", j.get("style"), "pin or dowel")
+    _check_report_shapes(report, bad)
     return pieces, float(expected), float(tol), joints
+
+
+def _check_report_shapes(report, bad):
+    """The report fields that the joint-graph and printability checks read beyond _report_fields' own, checked for
+    their type, so that an edited report.json gets a line naming the field and not an internal error."""
+    def obj(field, value):
+        if value is not None and not isinstance(value, dict):
+            raise bad(field, "not an object", value, "a JSON object")
+        return value or {}
+
+    def texts(field, value):
+        if value is not None and not (isinstance(value, list) and all(isinstance(x, str) for x in value)):
+            raise bad(field, "not a list of names", value, "a list of texts")
+
+    for k, e in enumerate(report["pieces"]):
+        pose = obj(f"pieces[{k}].print", e.get("print"))
+        t = pose.get("plate_transform")
+        if t is not None and not (isinstance(t, list) and len(t) == 4 and all(
+                isinstance(row, list) and len(row) == 4 and all(_finite(x) for x in row) for row in t)):
+            raise bad(f"pieces[{k}].print.plate_transform", "not a transform", t, "4 rows of 4 finite numbers")
+        obj(f"pieces[{k}].label", e.get("label"))
+    spec = obj("spec", report.get("spec"))
+    joints = obj("spec.joints", spec.get("joints"))
+    texts("spec.joints.allow", joints.get("allow"))
+    if not isinstance(joints.get("style", "pin"), str):
+        raise bad("spec.joints.style", "not a joint style", joints.get("style"), "pin, dowel or none")
+    out = obj("spec.output", spec.get("output"))
+    if not _finite(out.get("face_clearance", 0.0)):
+        raise bad("spec.output.face_clearance", "not a clearance", out.get("face_clearance"), "a number of mm")
+    if not _finite((report.get("checks") or {}).get("face_clearance_mm", 0.0) or 0.0):
+        raise bad("checks.face_clearance_mm", "not a clearance", report["checks"]["face_clearance_mm"],
+                  "a number of mm")
+    for field, contacts in (("contacts", report.get("contacts")),
+                            ("mesh.contacts", obj("mesh", report.get("mesh")).get("contacts"))):
+        if contacts is None:
+            continue
+        if not isinstance(contacts, list):
+            raise bad(field, "not a list", contacts, "a list of contact objects")
+        for k, c in enumerate(contacts):
+            obj(f"{field}[{k}]", c)
+            if c is None:
+                raise bad(f"{field}[{k}]", "not an object", c, "an object with pieces, room, pinned")
+            texts(f"{field}[{k}].pieces", c.get("pieces"))
+    assembly = obj("assembly", report.get("assembly"))
+    texts("assembly.stuck", assembly.get("stuck"))
 
 
 def _short(value) -> str:
@@ -468,6 +517,11 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> l
         if missing > share * core.volume():
             failures.append(f"{name}: the pin of {pin} is missing ({missing:.3g} mm^3 of its core is not there)")
         room = _cylinder(c, d, r + 0.5 * cl, 0.05 * length, length)
+        if j.get("shape") == "snap":
+            # the snap hole necks with its pin to 0.9 r past 70% of the length (joint._snap_profile): a plain room
+            # of radius r there would find the neck's wall in the hole piece and fail every snap joint
+            room = _cylinder(c, d, r + 0.5 * cl, 0.05 * length, 0.7 * length) + _cylinder(
+                c, d, 0.9 * r + 0.5 * cl, 0.05 * length, 0.9 * length)
         hit = (room ^ b).volume()
         if hit > share * room.volume():
             failures.append(f"{name}: the pin does not fit its hole in {hole} with clearance {cl:g} mm "
@@ -488,7 +542,8 @@ def check_joint_graph(report: dict):
     pieces = [p.get("id") for p in report.get("pieces") or []]
     edges = [(j.get("pin_piece"), j.get("hole_piece")) for j in report.get("joints") or []]
     failures = []
-    problem = graph_problem(pieces, edges, report.get("contacts") or (), style, allow)
+    randomized = ((report.get("randomize") or {}).get("amplitude") or 0) != 0
+    problem = graph_problem(pieces, edges, report.get("contacts") or (), style, allow, randomized=randomized)
     if problem:
         failures.append(problem)
     assembly = report.get("assembly") or {}
@@ -547,7 +602,8 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     graph_failures, checks["joint_graph"] = check_joint_graph(report)
     checks["printability"] = check_printability(report, dict(pieces))
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
-                          + joint_failures + graph_failures + checks["printability"]["failures"])
+                          + joint_failures + graph_failures + checks["printability"]["failures"]
+                          + _report_volume_problems(report, dict(pieces)))
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "
@@ -556,6 +612,24 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     if raise_on_failure:
         assert_passed(checks, str(directory))
     return checks
+
+
+REPORT_VOLUME_RTOL = 1e-3  # the build measures the very mesh it writes: a 3MF's or STL's float rounding is ~1e-7
+
+
+def _report_volume_problems(report, meshes) -> list:
+    """A piece whose file holds another volume than report.json (and so report.md) gives it: the report no longer
+    describes the files, though their sum may still match the model."""
+    problems = []
+    for k, e in enumerate(report["pieces"]):
+        claimed, mesh = e.get("volume_mm3"), meshes.get(e["id"])
+        if claimed is None or mesh is None:
+            continue
+        held = abs(float(mesh.volume))
+        if abs(held - claimed) > REPORT_VOLUME_RTOL * max(abs(claimed), held):
+            problems.append(f"pieces[{k}].volume_mm3: report.json gives {e['id']} {claimed:.6g} mm^3, its file "
+                            f"holds {held:.6g} mm^3 (expected within {REPORT_VOLUME_RTOL:.1%})")
+    return problems
 
 
 def _no_constant(name):
@@ -603,9 +677,15 @@ def fit_line(fit):
     """One line saying the pin size and fit."""
     if fit.get("style") not in ("pin", "dowel"):
         return f"no pins; face clearance {fit['face_clearance_mm']:g} mm"
-    return (f"{fit['style']}s {fit['pin_diameter_mm']:g} mm across, {fit['pin_length_mm']:g} mm long, clearance "
+    line = (f"{fit['style']}s {fit['pin_diameter_mm']:g} mm across, {fit['pin_length_mm']:g} mm long, clearance "
             f"{fit['clearance_mm']:g} mm radial and {fit['axial_clearance_mm']:g} mm at the tip; face clearance "
             f"{fit['face_clearance_mm']:g} mm")
+    s = fit.get("shrunk")
+    if s:
+        asked = " and ".join(f"{k} {s[f'asked_{k}_mm']:g} mm" for k in ("radius", "length")
+                             if s.get(f"asked_{k}_mm") is not None)
+        line += f"; {s['joints']} of {s['of']} shrunk to fit their faces (joints asked {asked})"
+    return line
 
 
 def piece_bed_contact(mesh, transform, pid="piece"):

@@ -903,11 +903,12 @@ def joint_graph(piece_ids, edges):
     return parts, sorted(set(ids) - touched)
 
 
-def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=None, roomy=None):
+def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=None, roomy=None, randomized=True):
     """One line saying why the puzzle does not hold together (a piece without a joint, or more than one part), with
     what would fit; None when it holds, for style none, or when joints.allow has 'loose'. contacts: report records
     (Layout.contacts) whose reasons explain it; roomy: (grid, radius, length) of a coarser grid whose cells have room
-    for the smallest pin (coarser_grid), named when a contact has no room."""
+    for the smallest pin (coarser_grid), named when a contact has no room; randomized: whether a warp R bends the
+    cuts (only then is a smaller randomize.amplitude advice)."""
     if style == "none" or "loose" in tuple(allow):
         return None
     ids = sorted(set(piece_ids))
@@ -936,7 +937,8 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
         advice = "a smaller joints.radius, " + advice
     elif shown_reason.startswith("tilt"):
         # smaller blocks have flatter splits; a bumpy warp tilts them further
-        advice = "more pieces along the curved axis or a smaller randomize.amplitude, or joints.allow: [loose]"
+        advice = ("more pieces along the curved axis" + (" or a smaller randomize.amplitude" if randomized else "")
+                  + ", or joints.allow: [loose]")
     why = next((f"between {c['pieces'][0]} and {c['pieces'][1]}, {c['reason']}" for c in mine if c.get("reason")),
                "no joint was placed on its contacts")
     got = f"grid {list(grid)}" if grid is not None else f"{len(parts)} parts"
@@ -978,14 +980,15 @@ def coarser_grid(tiling, setup):
     return (tuple(out), s.radius, s.length) if out != grid else None
 
 
-def require_joined(tiling, layout, joint_spec=None, roomy=None):
+def require_joined(tiling, layout, joint_spec=None, roomy=None, randomized=True):
     """Raise SpecError (one line) unless every cell has a joint and the joints join all cells into one part; style
     none and joints.allow: [loose] excepted. joint_spec: spec.JointSpec (None: its defaults); roomy: coarser_grid's
     answer, named in the message."""
     joint_spec = joint_spec if joint_spec is not None else JointSpec()
     problem = graph_problem([piece_id(c) for c in tiling.cells],
                             [(piece_id(j.pin_cell), piece_id(j.hole_cell)) for j in layout.joints],
-                            layout.contacts, joint_spec.style, tuple(joint_spec.allow), tiling.grid, roomy)
+                            layout.contacts, joint_spec.style, tuple(joint_spec.allow), tiling.grid, roomy,
+                            randomized)
     if problem:
         raise SpecError(problem)
 
@@ -1172,5 +1175,5 @@ def place_planned_joints(tiling, fmap, joint_spec):
     roomy = None
     if setup is not None and any(c["reason"] and c["reason"].startswith("no room") for c in layout.contacts):
         roomy = coarser_grid(tiling, setup)
-    require_joined(tiling, layout, joint_spec, roomy)
+    require_joined(tiling, layout, joint_spec, roomy, randomized=fmap.warp is not None)
     return layout, plan

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .errors import ModelError
 from .load import load_model_for, with_closed_axes
 from .progress import Progress, Timer
 
@@ -72,7 +73,10 @@ def prepare(spec, timer=None, progress=None, workers=None):
 
     vol, spec = model.volume, with_closed_axes(spec, model)
     with timer("verify", progress):
-        model_check = verify_model(vol)
+        try:
+            model_check = verify_model(vol)
+        except ModelError as exc:  # verify sees only the spline: say which file (and patch) folds
+            raise ModelError(f"{_model_source(spec)}: {exc}") from None
     seams, all_seams = seams_for(spec, vol)
     warp, rand_report = _warp(spec, vol, seams, timer, progress)
     fmap = Map(vol, warp, -1 if model_check["handedness"] == "left" else 1)
@@ -96,6 +100,20 @@ def prepare(spec, timer=None, progress=None, workers=None):
         joints, contacts = list(layout.joints), list(layout.contacts)
     return Stages(model, tiling, fmap, joints, plan, contacts, model_report(model, model_check, all_seams),
                   rand_report, sampling=sampling)
+
+
+def _model_source(spec):
+    """The spec key and file of the spline verify_model checks, for its messages: 'model.nurbs: PATH (patch K)'."""
+    m = spec.model
+    if m.nurbs is not None:
+        return f"model.nurbs: {m.nurbs}" + (f" (patch {m.patch})" if m.patch else "")
+    if m.cage is not None and m.cage.nurbs is not None:
+        return f"model.cage.nurbs: {m.cage.nurbs}" + (f" (patch {m.cage.patch})" if m.cage.patch else "")
+    if m.shell is not None:
+        return f"model.shell.surface: {m.shell.surface}"
+    if m.builtin is not None:
+        return f"model.builtin ({m.builtin.get('type')})"
+    return f"model.cage ({m.cage.type})" if m.cage is not None else "model"
 
 
 def _warp(spec, vol, seams, timer, progress):
@@ -127,6 +145,9 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
+    if seed is not None and spec.randomize is None:  # a user passing a seed expects it to change the pieces
+        print(f"warning: --seed {seed} changes nothing: the spec does not randomize (got no randomize or amplitude 0, "
+              f"expected randomize: {{amplitude: 0.25}} for a seed to matter)", file=sys.stderr)
     target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
     jobs = jobs or os.cpu_count() or 1
     # started first, so that the workers' start-up runs on the other cores while this process loads and plans

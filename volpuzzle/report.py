@@ -50,9 +50,16 @@ def fit(spec, joints, face_clearance):
     j = spec.joints
     if not joints:
         return pin_fit("none", 0.0, 0.0, j.clearance, j.axial_clearance, face_clearance)
-    return pin_fit(j.style, min(float(x.radius) for x in joints), min(float(x.length) for x in joints),
-                   max(float(x.clearance) for x in joints), max(float(x.axial_clearance) for x in joints),
-                   face_clearance)
+    out = pin_fit(j.style, min(float(x.radius) for x in joints), min(float(x.length) for x in joints),
+                  max(float(x.clearance) for x in joints), max(float(x.axial_clearance) for x in joints),
+                  face_clearance)
+    # a size the user wrote and did not get is said, not only left in each joint's "shrunk" flag
+    shrunk = [x for x in joints if (j.radius is not None and float(x.radius) < j.radius)
+              or (j.length is not None and float(x.length) < j.length)]
+    if shrunk:
+        out["shrunk"] = {"joints": len(shrunk), "of": len(joints), "asked_radius_mm": j.radius,
+                         "asked_length_mm": j.length}
+    return out
 
 
 def piece_entries(stages, placements, ext):

@@ -451,13 +451,21 @@ def make_shell(surf, thickness, target, key="model.shell.thickness", side="inwar
         where_uvw = np.asarray(cert.where_uvw, float)
         at = vol.evaluate(where_uvw.reshape(1, 3))[0]
         fits = _thickest(surf, min(thickness, limit), share, target)
-        advice = f"at most {_fmt(fits)}" if fits > 0 else "a smaller thickness"
+        words = _side_words(share)
+        if fits > 0:
+            advice = f"at most {_fmt(fits)} mm, the thickest {words}shell that certifies"
+        else:  # "a smaller thickness" would send the user bisecting down to nothing
+            other = "outward" if way == "inward" else "inward"
+            alt = (f", or model.shell.side: {other}, whose tightest bend ({_fmt(bends[other][0])} mm) may take it"
+                   if share in (0.0, 1.0) and bends[other][0] > thickness else "")
+            advice = (f"a surface without so tight a bend: no {words}shell of 0.1 mm or more certifies (mend the "
+                      f"surface there{alt})")
         round_ = "its inside" if way == "inward" else "its outside (a hollow)"
         raise ModelError(
             f"{key}: a {_fmt(thickness)} mm {_side_words(share)}shell folds: its Jacobian changes sign near xyz "
             f"({', '.join(_fmt(c) for c in at)}) mm; the surface bends round {round_} with a radius of "
             f"{_fmt(radius)} mm at xyz ({', '.join(_fmt(c) for c in xyz)}) mm, uv ({_fmt(uv[0])}, {_fmt(uv[1])}) "
-            f"(got {_fmt(thickness)}, expected {advice} mm, the thickest {_side_words(share)}shell that certifies)")
+            f"(got {_fmt(thickness)}, expected {advice})")
     info = {"thickness_mm": float(thickness), "side": side if isinstance(side, str) else float(side),
             "inward_mm": inward, "outward_mm": outward, **layout, **fit,
             "smallest_inner_radius_mm": _finite(bends["inward"][0]),

@@ -223,6 +223,12 @@ def detect_format(path, head=None):
             f"{path}: not a volume model: expected a volpuzzle JSON (\"format\": \"volpuzzle-nurbs\") or a geomdl "
             f"JSON (a \"shape\" object of \"type\": \"volume\")")
     supported = ", ".join(f"{f.NAME} ({'/'.join(f.EXTENSIONS)})" for f in fmts)
+    from ..spec import MESH_SUFFIXES
+
+    if ext in MESH_SUFFIXES:  # `info` of a mesh: it is a model here too, only not a volume one
+        raise ModelError(
+            f"{path}: a {ext} file is a triangle mesh, not a volume model (expected {supported}; for a puzzle "
+            f"of this mesh write model: {{mesh: FILE, cage: box}} in a spec)")
     raise ModelError(f"{path}: unrecognised model format; supported: {supported}")
 
 
