@@ -38,6 +38,44 @@ def test_pins_pointing_down_are_avoided():
     assert pin_after[2] > -0.5
 
 
+def _half_shell_with_a_pin():
+    """A half spherical shell (radii 40 and 34 mm), its ring of a cut face up at z = 0, with a 3 mm pin standing
+    2.5 mm up from the ring: a half of the sphere-shell builtin cut in two."""
+    import manifold3d
+
+    ball = manifold3d.Manifold.sphere
+    shell = (ball(40.0, 128) - ball(34.0, 128)).trim_by_plane((0.0, 0.0, -1.0), 0.0)
+    solid = shell + manifold3d.Manifold.cylinder(3.0, 1.5, 1.5, 48).translate((37.0, 0.0, -0.5))
+    out = solid.to_mesh()
+    return trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3], np.asarray(out.tri_verts), process=True)
+
+
+def test_a_piece_never_stands_on_its_pin_even_where_its_only_flat_face_holds_it():
+    from volpuzzle.layout import plan_pose
+
+    # the ring is the one flat face, but the pin stands on it: the dome goes down, on a base cut, and the pin up
+    pose = plan_pose(_half_shell_with_a_pin(), [np.array([0.0, 0.0, 1.0])])
+    assert pose.pins_down == 0 and pose.pins_up == 1
+    assert pose.down[2] < -0.99 and pose.base_cut_mm > 0
+
+
+@pytest.mark.slow
+def test_a_build_whose_pin_a_base_cut_shaved_fails_as_its_check_would(tmp_path, monkeypatch):
+    import volpuzzle.layout as layout
+
+    plan_pose = layout.plan_pose
+
+    def pin_into_the_bed(mesh, pin_directions=(), hole_openings=(), down=None):
+        return plan_pose(mesh, pin_directions, hole_openings, down=pin_directions[0] if len(pin_directions) else down)
+
+    monkeypatch.setattr(layout, "plan_pose", pin_into_the_bed)
+    spec = write_spec(tmp_path, {"name": "ss", "model": {"builtin": {"type": "sphere-shell"}, "size": 80},
+                                 "grid": [1, 2, 1], "output": {"tolerance": 0.5, "labels": False}})
+    with pytest.raises(volpuzzle.errors.VolpuzzleError, match=r"the pin of p0-0-0 is missing"):
+        volpuzzle.build(spec, output_dir=tmp_path / "out", jobs=1)
+    assert not (tmp_path / "out").exists()
+
+
 def test_every_part_on_exactly_one_plate_inside_it_and_apart():
     rng = np.random.default_rng(3)
     parts = [(f"p{i}", trimesh.creation.box(rng.uniform(15, 60, 3))) for i in range(14)]

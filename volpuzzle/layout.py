@@ -1,9 +1,10 @@
 """layout: print orientation of every piece, a stable base for it, and its place on build plates.
 
 Orientation: every candidate `down` (the largest convex-hull facets, the axes, and the directions that turn a pin up
-or a hole's opening up) is scored at once on plain arrays: a stable base first (a flat face, or a flat cut a few
-tenths of a mm deep, of at least MIN_BED_MM2), then no pin pointing into the bed and no hole opening onto it
-(support inside a blind hole cannot be removed), then the least overhang less the base, with a bonus for every pin
+or a hole's opening up) is scored at once on plain arrays: no pin pointing into the bed first (the piece would
+stand on it, and a base cut would shave it), then a stable base (a flat face, or a flat cut a few tenths of a mm
+deep, of at least MIN_BED_MM2), then no hole opening onto the bed (support inside a blind hole cannot be removed),
+then the least overhang less the base, with a bonus for every pin
 within PIN_UP_DEG of vertical. A piece without a flat face that large gets a base cut (base_cut): the plane
 BASE_CUT_MM[i] above its lowest point that first gives it BASE_TARGET of bed contact.
 
@@ -147,7 +148,8 @@ def _choose(mesh, pin_directions=(), hole_openings=()):
     cost = (overhang - base) / max(total, 1e-12) - PIN_UP_WEIGHT * pins_up
     # a flat face within a few per cent of the best is as good as it: ties go to the candidate listed first
     cost = np.round(cost / 0.02)
-    best = np.lexsort((index, cost, pins_down + holes_down, unstable))[0]
+    # a pin into the bed is worse than a wobbly base: the piece would stand on the pin, and a base cut would shave it
+    best = np.lexsort((index, cost, holes_down, unstable, pins_down))[0]
     return (downs[best], contact[best], base[best], int(pins_down[best]), int(pins_up[best]),
             int(holes_down[best])), hull
 

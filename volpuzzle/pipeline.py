@@ -270,7 +270,7 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
     """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the build's
     own checks on exactly that -> Stages with pieces, poses, labels, checks. expected: mm^3 the pieces add up to
     before labels and base cuts take theirs."""
-    from .check import check_pieces
+    from .check import check_joints, check_pieces
     from .export import printable
     from .label import bed_labels, label_pieces
     from .layout import base_cuts, plan_poses
@@ -290,6 +290,11 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
     with timer("check", progress):
         pieces = printable(pieces, workers=workers)
         checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
+        # every pin in its hole on the pieces as written, as `volpuzzle check` judges them: a label, a base cut or
+        # the float32 rounding after the joints were cut must not pass here and fail there
+        joint_failures = check_joints({p.id: p.mesh for p in pieces}, [j.to_report() for j in s.joints])
+        checks["failures"] = checks["failures"] + joint_failures
+        checks["passed"] = checks["passed"] and not joint_failures
     checks["base_cuts_mm3"] = round(cut, 3)
     return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks)
 
