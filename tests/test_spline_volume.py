@@ -230,3 +230,52 @@ def test_subvolume_and_extraction_keep_the_volume(seed, rational, lo, hi):
     # every element's corner Bezier points interpolate the volume
     corner = hp[0, 0, 0, 0, 0, 0]
     np.testing.assert_allclose(corner[:3] / corner[3], vol.evaluate(box[:1])[0], atol=1e-10)
+
+
+_FIRST_CALL = """
+import numpy as np, sys
+sys.path.insert(0, {root!r})
+from tests.test_spline_volume import random_volume
+vol = random_volume(np.random.default_rng(5), (2, 2, 2), (5, 6, 4), True)
+uvw = np.random.default_rng(6).uniform(-2.0, 3.0, (400, 3))
+one = np.concatenate([vol.evaluate_with_derivatives(uvw[i:i + 1])[1] for i in range(20)])  # before any batch
+many = vol.evaluate_with_derivatives(uvw)[1][:20]
+print(int(np.array_equal(one, many)), int(np.array_equal(vol.evaluate(uvw[:1]), vol.evaluate(uvw)[:1])))
+"""
+
+
+def test_a_points_bits_do_not_depend_on_what_the_process_evaluated_before():
+    # A fresh process, whose first calls are single points (as bbox's polish makes on a model from a file): they
+    # must give the bits a batch gives later, so a build's pieces do not depend on the order of work in the process
+    # (a batch building several specs in one worker, a spec that loads the kernels sooner or later)
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[1])
+    out = subprocess.run([sys.executable, "-c", _FIRST_CALL.format(root=root)], capture_output=True, text=True,
+                         check=True, cwd=root)
+    assert out.stdout.split() == ["1", "1"]
+
+
+def test_each_kernel_compiles_one_version_per_net_kind():
+    # Arguments of every dtype and layout callers pass (float64 C arrays, but also int, Fortran-ordered, strided or
+    # read-only parameters) reach the kernels as one array type each: a second type would be a second compilation
+    # (seconds on an empty cache). Polynomial (d = 3) and rational (d = 4) nets differ only in `mode` by design.
+    from volpuzzle.spline import _fast
+
+    rng = np.random.default_rng(3)
+    for degrees in ((3, 3, 3), (2, 2, 2)):
+        for rational in (False, True):
+            vol = random_volume(rng, degrees, (5, 5, 5), rational)
+            base = rng.uniform(-2.0, 3.0, (40, 3))
+            ro = base.copy()
+            ro.setflags(write=False)
+            for uvw in (base, np.asfortranarray(base), base[::2], ro, np.zeros((3, 3), dtype=np.int32), base[:1]):
+                vol.evaluate(uvw)
+                vol.evaluate_with_derivatives(uvw)
+    for name in ("values", "derivatives", "values_cubic", "derivatives_cubic"):
+        sigs = getattr(_fast, name).signatures
+        assert 1 <= len(sigs) <= 2, (name, sigs)
+        assert len({s[:-1] for s in sigs}) == 1, (name, sigs)  # all but `mode` the same
+        assert len({s[-1] for s in sigs}) == len(sigs)

@@ -82,11 +82,13 @@ def _warm() -> int:
     from . import compose  # noqa: F401
     from .spline.volume import Volume
 
-    # numba's one-off set-up, ~0.7 s at the first compiled kernel it loads
-    knots = np.array([0.0, 0.0, 1.0, 1.0])
-    corners = np.stack(np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij"), axis=-1)
-    cube = Volume((1, 1, 1), (knots, knots, knots), corners, None)
-    cube.evaluate_with_derivatives(np.full((300, 3), 0.5))  # more points than volume._TINY: the compiled path
+    # numba's one-off set-up, ~0.7 s at the first compiled kernel it loads. A tricubic polynomial cube, as the
+    # randomized maps are: its kernel is one the build uses (a trilinear one compiled a version nothing else needed,
+    # seconds on an empty cache)
+    knots = np.repeat([0.0, 1.0], 4)
+    s = np.linspace(0.0, 1.0, 4)
+    cube = Volume((3, 3, 3), (knots, knots, knots), np.stack(np.meshgrid(s, s, s, indexing="ij"), axis=-1), None)
+    cube.evaluate_with_derivatives(np.full((8, 3), 0.5))
     return os.getpid()
 
 

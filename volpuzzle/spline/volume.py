@@ -16,8 +16,6 @@ from . import basis
 from . import knots as knots_mod
 
 _PARALLEL_MIN = 4096  # points; below this one thread is faster than waking others
-_TINY = 256  # points; below this, and before the compiled kernels are loaded, use numpy
-_LOADED = set()
 _POOL = {}
 _MODE = {3: np.empty(0), 4: np.empty((0, 0))}
 _FAST = []
@@ -219,13 +217,11 @@ class Volume(TensorSpline):
         """Homogeneous (or Cartesian) sums at scattered points: (n, d) and, if asked, (n, d, 3)."""
         n = uvw.shape[0]
         d = self._net.shape[3]
-        # A tiny first call should not pay for loading compiled code (seconds): numpy until it is loaded.
-        if n < _TINY and not _LOADED:
-            return self._numpy_sums(uvw, want_der)
+        # Every call takes the compiled path, however few its points: a numpy path for tiny calls until the kernels
+        # were loaded made the last bits (of bbox, say) depend on what the process had evaluated before.
         fast = _fast_module()
         if fast is None:
             return self._numpy_sums(uvw, want_der)
-        _LOADED.add(True)
         # One array type per argument (C-contiguous, writable float64), so numba compiles one version per kernel.
         uvw = np.require(uvw, np.float64, ["C", "W"])
         out = np.empty((n, d))
