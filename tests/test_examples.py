@@ -12,10 +12,6 @@ from volpuzzle.check import check_directory, least_face_gap
 from volpuzzle.io.threemf import read_3mf
 
 SPECS = sorted(p.stem for p in (REPO / "specs").glob("*.yaml"))
-# still short of the face clearance at one spot (issue 10, open)
-GAP_SHORT = {"quarter-torus": "a cut face's corner on the round section, tessellated at 0.5 mm: 0.087 mm there",
-             "twisted-torus": "curved cut faces tessellated at 0.5 mm tilt against each other: 0.109 mm (0.143 at "
-                              "its own 0.05 mm)"}
 
 
 @pytest.mark.slow
@@ -43,8 +39,6 @@ def test_example_builds_and_checks(name, tmp_path):
     # from the files: no two neighbours closer anywhere than the face clearance less the tessellation's allowance
     printable = check_directory(out)["printability"]
     short = [w for w in printable["warnings"] if "come within" in w]
-    if short and name in GAP_SHORT:
-        pytest.xfail(GAP_SHORT[name])  # every other invariant above held
     assert not short, short
     if report["checks"]["face_clearance_mm"] > 0 and printable["min_face_gap_mm"] is not None:
         assert printable["min_face_gap_mm"] >= least_face_gap(report["checks"]["face_clearance_mm"],

@@ -135,3 +135,37 @@ def test_a_merged_fragment_is_held_without_filling_a_third_pieces_gap():
     assert out["y"].min_gap(out["z"], 3 * c) >= c - 1e-6
     assert sum(float(m.volume()) for m in out.values()) + taken == pytest.approx(
         sum(float(m.volume()) for m in pieces.values()), rel=1e-9)
+
+
+def test_a_coarse_curved_cut_face_keeps_its_triangles_half_back_on_both_sides(tmp_path):
+    # the quarter torus at a coarse tessellation: the slide of a cut face's points after the edge it meets the tube
+    # along is tangent to their mean normal, and brought a corner of one coarse triangle in front of its half
+    # set-back plane, so that the neighbour's copy came within 0.087 of 0.15 mm (issue 10)
+    (tmp_path / "s.yaml").write_text("name: qt\nmodel:\n  builtin: {type: quarter-torus, major_radius: 50, "
+                                     "minor_radius: 20}\ngrid: [2, 2, 2]\nrandomize: {seed: 1, amplitude: 0.25, "
+                                     "control_points: 6}\noutput: {tolerance: 0.124458}\n")
+    stages = prepare(load_spec(tmp_path / "s.yaml"))
+    sampling = sample_parameters(stages.tiling, stages.fmap, 0.124458)
+    sides = {}
+    for index in ((1, 0, 0), (1, 0, 1)):
+        cell = stages.tiling.cell(index)
+        v0, f0 = cell_surface(cell, sampling, stages.fmap)
+        v1, f1 = cell_surface(cell, sampling, stages.fmap, face_clearance=CLEARANCE)
+        assert np.array_equal(f0, f1)
+        sides[index] = (v0, v1, f1)
+    (a0, a1, fa), (b0, b1, fb) = sides[(1, 0, 0)], sides[(1, 0, 1)]
+    # the shared face: triangles whose three corners are points of both cells, before the set-back
+    where = {tuple(p): i for i, p in enumerate(b0.round(9))}
+    to_b = np.array([where.get(tuple(p), -1) for p in a0.round(9)])
+    shared = fa[np.all(to_b[fa] >= 0, axis=1)]
+    assert len(shared) > 50
+    n = np.cross(a0[shared[:, 1]] - a0[shared[:, 0]], a0[shared[:, 2]] - a0[shared[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    back_a = np.einsum("mkd,md->mk", (a1 - a0)[shared], n)
+    back_b = np.einsum("mkd,md->mk", (b1 - b0)[to_b[shared]], n)
+    # each side's copy of every shared triangle half a clearance behind its plane at every corner, on its own side
+    assert back_a.max() <= -0.5 * CLEARANCE + 1e-6
+    assert back_b.min() >= 0.5 * CLEARANCE - 1e-6
+    a = geometry.manifold_from_mesh(a1, fa, "a")
+    b = geometry.manifold_from_mesh(b1, fb, "b")
+    assert a.min_gap(b, 3 * CLEARANCE) >= 0.999 * CLEARANCE
