@@ -137,6 +137,7 @@ def test_a_merged_fragment_is_held_without_filling_a_third_pieces_gap():
         sum(float(m.volume()) for m in pieces.values()), rel=1e-9)
 
 
+@pytest.mark.slow  # ~4 s: two cells of the quarter torus at its retried tolerance
 def test_a_coarse_curved_cut_face_keeps_its_triangles_half_back_on_both_sides(tmp_path):
     # the quarter torus at a coarse tessellation: the slide of a cut face's points after the edge it meets the tube
     # along is tangent to their mean normal, and brought a corner of one coarse triangle in front of its half
