@@ -90,3 +90,40 @@ def test_seam_maps_are_inverse(axis, swap, f0, f1, pts):
     uvw[:, axis] = seam.domain[axis][1]
     back = seam.map_min_to_max(seam.map_max_to_min(uvw))
     assert np.allclose(back, uvw, atol=1e-12)
+
+
+def _sphere_shell_spec(tmp_path, periodic):
+    from helpers_build import write_spec
+
+    spec = {"name": "ss", "model": {"builtin": {"type": "sphere-shell"}, "size": 80}, "grid": [1, 2, 1],
+            "output": {"tolerance": 0.5, "labels": False, "directory": str(tmp_path / "out")}}
+    if periodic:
+        spec["periodic"] = periodic
+    return write_spec(tmp_path, spec)
+
+
+@pytest.mark.parametrize("periodic", [None, ["v"]])
+def test_a_closed_axis_the_spec_leaves_out_is_joined_and_said(tmp_path, capsys, periodic):
+    from volpuzzle.load import load_model_for, with_closed_axes
+    from volpuzzle.spec import load_spec
+
+    spec = load_spec(_sphere_shell_spec(tmp_path, periodic))
+    model = load_model_for(spec)
+    joined = with_closed_axes(spec, model, find_seams(model.volume))
+    assert joined.periodic == (1,)
+    err = capsys.readouterr().err
+    if periodic:
+        assert err == ""
+    else:
+        assert err.startswith("warning: periodic: the model closes on itself along v") and "expected ['v']" in err
+
+
+@pytest.mark.slow
+def test_a_sphere_shell_without_periodic_keeps_its_seam_apart_and_pinned(tmp_path):
+    from volpuzzle.check import check_directory
+
+    report = volpuzzle.build(_sphere_shell_spec(tmp_path, None), jobs=1)
+    # both faces between the two halves, the cut and the seam, carry a pin
+    assert len(report["joints"]) == 2
+    printable = check_directory(tmp_path / "out")["printability"]
+    assert not [w for w in printable["warnings"] if "come within" in w]

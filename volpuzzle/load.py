@@ -87,14 +87,26 @@ def _load_mesh_model(spec):
     return Model(cage, scale, info, mesh)
 
 
-def with_closed_axes(spec, model):
+def with_closed_axes(spec, model, found=()):
     """The spec with the axes the model closes on itself added to spec.periodic: a shell's closed direction is
-    periodic whether or not the spec says so."""
+    periodic whether or not the spec says so, and so is any volume model's axis whose min and max faces coincide
+    (found: those axes, spline.seams.find_seams), with a warning: left unjoined, the pieces either side of the seam
+    would touch face to face, with neither a face clearance nor a pin. A mesh's cage is left as its spec says (its
+    pieces are joined on their real contacts)."""
     import dataclasses
+    import sys
 
     from .grid import AXES
 
     closed = [AXES.index(a) for a in model.info.get("shell", {}).get("closed_axes", [])]
+    unlisted = sorted(set(found) - set(spec.periodic) - set(closed)) if model.mesh is None else []
+    if unlisted:
+        names = ", ".join(AXES[a] for a in unlisted)
+        print(f"warning: periodic: the model closes on itself along {names} (its min and max faces coincide), so "
+              f"its pieces are joined across that seam (got periodic {[AXES[a] for a in spec.periodic]}, expected "
+              f"{[AXES[a] for a in sorted(set(spec.periodic) | set(unlisted))]}; write it so to silence this)",
+              file=sys.stderr)
+    closed = sorted(set(closed) | set(unlisted))
     if not closed:
         return spec
     return dataclasses.replace(spec, periodic=tuple(sorted(set(spec.periodic) | set(closed))))

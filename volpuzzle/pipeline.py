@@ -68,16 +68,19 @@ def prepare(spec, timer=None, progress=None, workers=None):
     from .joint import place_planned_joints
     from .mapping import Map
     from .report import model_report
+    from .spline.seams import find_seams
     from .tile import check_grid_vs_tolerance, seams_for, tile
     from .verify import verify_model
 
-    vol, spec = model.volume, with_closed_axes(spec, model)
+    vol = model.volume
+    found = find_seams(vol)
+    spec = with_closed_axes(spec, model, found)
     with timer("verify", progress):
         try:
             model_check = verify_model(vol)
         except ModelError as exc:  # verify sees only the spline: say which file (and patch) folds
             raise ModelError(f"{_model_source(spec)}: {exc}") from None
-    seams, all_seams = seams_for(spec, vol)
+    seams, all_seams = seams_for(spec, vol, found)
     warp, rand_report = _warp(spec, vol, seams, timer, progress)
     fmap = Map(vol, warp, -1 if model_check["handedness"] == "left" else 1)
     with timer("tile", progress):

@@ -258,12 +258,12 @@ def tile(vol, grid, splits=None, periodic=(), seams=None, mass=None):
     return Tiling(domain, breaks, tuple(sorted(periodic)), seams, cells, tuple(faces))
 
 
-def seams_for(spec, vol):
-    """The seams of vol's closed axes (spline.seams.find_seams) -> ({axis: seam} of those spec.periodic asks to join,
-    {axis: seam} of all found, for the report)."""
+def seams_for(spec, vol, found=None):
+    """The seams of vol's closed axes (spline.seams.find_seams, or `found` when already found) -> ({axis: seam} of
+    those spec.periodic asks to join, {axis: seam} of all found, for the report)."""
     from .spline.seams import find_seams
 
-    found = find_seams(vol)
+    found = find_seams(vol) if found is None else found
     return {a: s for a, s in found.items() if a in spec.periodic}, found
 
 
