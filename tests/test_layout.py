@@ -54,7 +54,7 @@ def test_a_piece_never_stands_on_its_pin_even_where_its_only_flat_face_holds_it(
     from volpuzzle.layout import plan_pose
 
     # the ring is the one flat face, but the pin stands on it: the dome goes down, on a base cut, and the pin up
-    pose = plan_pose(_half_shell_with_a_pin(), [np.array([0.0, 0.0, 1.0])])
+    pose = plan_pose(_half_shell_with_a_pin(), [np.array([0.0, 0.0, 1.0])], pin_tips=[(np.array([37.0, 0, 2.5]), 1.5)])
     assert pose.pins_down == 0 and pose.pins_up == 1
     assert pose.down[2] < -0.99 and pose.base_cut_mm > 0
 
@@ -65,7 +65,7 @@ def test_a_build_whose_pin_a_base_cut_shaved_fails_as_its_check_would(tmp_path, 
 
     plan_pose = layout.plan_pose
 
-    def pin_into_the_bed(mesh, pin_directions=(), hole_openings=(), down=None):
+    def pin_into_the_bed(mesh, pin_directions=(), hole_openings=(), down=None, pin_tips=()):
         return plan_pose(mesh, pin_directions, hole_openings, down=pin_directions[0] if len(pin_directions) else down)
 
     monkeypatch.setattr(layout, "plan_pose", pin_into_the_bed)

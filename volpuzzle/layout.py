@@ -1,10 +1,10 @@
 """layout: print orientation of every piece, a stable base for it, and its place on build plates.
 
 Orientation: every candidate `down` (the largest convex-hull facets, the axes, and the directions that turn a pin up
-or a hole's opening up) is scored at once on plain arrays: no pin pointing into the bed first (the piece would
+or a hole's opening up) is scored at once on plain arrays: no pin reaching down to the bed first (the piece would
 stand on it, and a base cut would shave it), then a stable base (a flat face, or a flat cut a few tenths of a mm
-deep, of at least MIN_BED_MM2), then no hole opening onto the bed (support inside a blind hole cannot be removed),
-then the least overhang less the base, with a bonus for every pin
+deep, of at least MIN_BED_MM2), then no pin pointing into the bed and no hole opening onto it (support inside a
+blind hole cannot be removed), then the least overhang less the base, with a bonus for every pin
 within PIN_UP_DEG of vertical. A piece without a flat face that large gets a base cut (base_cut): the plane
 BASE_CUT_MM[i] above its lowest point that first gives it BASE_TARGET of bed contact.
 
@@ -96,12 +96,13 @@ def _candidate_downs(hull, count=24):
     return normals[order], areas[order]
 
 
-def _scores(mesh, downs, up_dirs, open_dirs=()):
+def _scores(mesh, downs, up_dirs, open_dirs=(), pin_tips=()):
     """For every candidate `down` (k, 3) facing the plate: contact area on the plate (k,), the bed area a base cut
     of BASE_CUT_MM[-1] would give (k,, from the down-facing triangles within that depth of the lowest point),
-    overhanging area (k,), pins pointing down (k,), pins within PIN_UP_DEG of up (k,), holes opening down (k,); and
-    the piece's whole surface area. All candidates at once, on plain arrays: trimesh's cached properties re-hash the
-    mesh on every access."""
+    overhanging area (k,), pins pointing down (k,), pins within PIN_UP_DEG of up (k,), holes opening down (k,), pins
+    reaching within BASE_CUT_MM[-1] of the lowest point (k,); and the piece's whole surface area. pin_tips: per pin
+    of up_dirs, (centre of its tip (3,) mm, radius mm). All candidates at once, on plain arrays: trimesh's cached
+    properties re-hash the mesh on every access."""
     vertices = mesh.vertices.view(np.ndarray)
     faces = mesh.faces.view(np.ndarray)
     cross = mesh.triangles_cross.view(np.ndarray)  # usually cached by the volume checks already
@@ -125,11 +126,18 @@ def _scores(mesh, downs, up_dirs, open_dirs=()):
     pins_down = (pin_dot > 0.5).sum(axis=1)
     pins_up = (pin_dot < -np.cos(np.radians(PIN_UP_DEG))).sum(axis=1)
     holes_down = (downs @ open_dirs.T > 0.5).sum(axis=1)
+    on_bed = np.zeros(len(downs), dtype=np.int64)
+    if len(pin_tips):
+        tips = np.array([t for t, _ in pin_tips], float)
+        radii = np.array([r for _, r in pin_tips], float)
+        # the lowest point of each pin's tip disc, along each candidate's down
+        reach = tips @ downs.T + radii[:, None] * np.sqrt(np.clip(1.0 - pin_dot.T ** 2, 0.0, 1.0))
+        on_bed = (reach > low[None, :] - BASE_CUT_MM[-1] - 1e-6).sum(axis=0)
     return (contact, np.maximum(base, contact), overhang, pins_down, pins_up, holes_down, float(area.sum()),
-            low - h.min(axis=0))
+            low - h.min(axis=0), on_bed)
 
 
-def _choose(mesh, pin_directions=(), hole_openings=()):
+def _choose(mesh, pin_directions=(), hole_openings=(), pin_tips=()):
     """The best candidate -> (down (3,), flat contact mm^2, estimated base mm^2, pins_down, pins_up, holes_down) and
     the piece's convex hull."""
     hull = mesh.convex_hull
@@ -140,16 +148,16 @@ def _choose(mesh, pin_directions=(), hole_openings=()):
         d = np.asarray(d, float)
         extra.append(-d[None] / max(np.linalg.norm(d), 1e-12))
     downs = np.concatenate([downs] + extra)
-    contact, base, overhang, pins_down, pins_up, holes_down, total, height = _scores(mesh, downs, pin_directions,
-                                                                                     hole_openings)
+    contact, base, overhang, pins_down, pins_up, holes_down, total, height, on_bed = _scores(
+        mesh, downs, pin_directions, hole_openings, pin_tips)
     index = np.arange(len(downs))
     # a tall piece on a small base topples or wobbles: the base's side should be at least a quarter of the height
     unstable = base < np.maximum(2 * MIN_BED_MM2, (height / TALL_RATIO) ** 2)
     cost = (overhang - base) / max(total, 1e-12) - PIN_UP_WEIGHT * pins_up
     # a flat face within a few per cent of the best is as good as it: ties go to the candidate listed first
     cost = np.round(cost / 0.02)
-    # a pin into the bed is worse than a wobbly base: the piece would stand on the pin, and a base cut would shave it
-    best = np.lexsort((index, cost, holes_down, unstable, pins_down))[0]
+    # a pin reaching the bed is worse than a wobbly base: the piece would stand on it, and a base cut would shave it
+    best = np.lexsort((index, cost, pins_down + holes_down, unstable, on_bed))[0]
     return (downs[best], contact[best], base[best], int(pins_down[best]), int(pins_up[best]),
             int(holes_down[best])), hull
 
@@ -195,14 +203,16 @@ def bed_contact(vertices, faces, transform=None, solid=None):
     return float(solid.slice(float(v[:, 2].min()) + FIRST_SLICE_MM).area())
 
 
-def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None):
+def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None, pin_tips=()):
     """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it). down (3,): the assembled
-    direction to put on the bed, when the caller has chosen it (a dowel on its side)."""
+    direction to put on the bed, when the caller has chosen it (a dowel on its side); pin_tips: per pin direction,
+    (centre of its tip (3,) mm, radius mm) (pin_tips)."""
     from .geometry import solid_of
 
     hull_points = None
     if down is None:
-        (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings)
+        (down, contact, _, pins_down, pins_up, holes_down), hull = _choose(mesh, pin_directions, hole_openings,
+                                                                           pin_tips)
         hull_points = hull.vertices.view(np.ndarray)
     else:
         down = np.asarray(down, float) / max(float(np.linalg.norm(down)), 1e-300)
@@ -289,6 +299,18 @@ def joint_directions(joints):
         if j.style in ("pin", "dowel"):
             openings.setdefault(piece_id(j.hole_cell), []).append(-d)
     return pins, openings
+
+
+def pin_tips(joints):
+    """{piece id: [(centre of the pin's tip (3,) mm, radius mm)]}, in the order of joint_directions' pins."""
+    from .grid import piece_id
+
+    tips = {}
+    for j in joints or ():
+        if j.style == "pin":
+            tip = np.asarray(j.center, float) + float(j.length) * np.asarray(j.direction, float)
+            tips.setdefault(piece_id(j.pin_cell), []).append((tip, float(j.radius)))
+    return tips
 
 
 def _resting(points, rot):
@@ -470,15 +492,16 @@ def plan_poses(pieces, joints, workers=None):
     from .workers import MeshRef, map_pieces
 
     pins, openings = joint_directions(joints)
-    items = [(MeshRef(p.mesh), pins.get(p.id, ()), openings.get(p.id, ())) for p in pieces]
+    tips = pin_tips(joints)
+    items = [(MeshRef(p.mesh), pins.get(p.id, ()), openings.get(p.id, ()), tips.get(p.id, ())) for p in pieces]
     poses = map_pieces(workers, _pose_one, items, what="layout")
     return {p.id: pose for p, pose in zip(pieces, poses, strict=True)}
 
 
 def _pose_one(_shared, item):
-    """plan_pose of one item (MeshRef, pin directions, hole openings), wherever it runs."""
-    ref, pins, openings = item
-    return plan_pose(ref.mesh, pins, openings)
+    """plan_pose of one item (MeshRef, pin directions, hole openings, pin tips), wherever it runs."""
+    ref, pins, openings, tips = item
+    return plan_pose(ref.mesh, pins, openings, pin_tips=tips)
 
 
 def base_cuts(pieces, poses, workers=None):
