@@ -65,7 +65,7 @@ def test_a_build_whose_pin_a_base_cut_shaved_fails_as_its_check_would(tmp_path, 
 
     plan_pose = layout.plan_pose
 
-    def pin_into_the_bed(mesh, pin_directions=(), hole_openings=(), down=None, pin_tips=()):
+    def pin_into_the_bed(mesh, pin_directions=(), hole_openings=(), down=None, **_tips):
         return plan_pose(mesh, pin_directions, hole_openings, down=pin_directions[0] if len(pin_directions) else down)
 
     monkeypatch.setattr(layout, "plan_pose", pin_into_the_bed)
