@@ -206,7 +206,7 @@ def bed_contact(vertices, faces, transform=None, solid=None):
 def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None, pin_tips=()):
     """The piece's Pose: orientation and how deep a base cut it needs (base_cut applies it). down (3,): the assembled
     direction to put on the bed, when the caller has chosen it (a dowel on its side); pin_tips: per pin direction,
-    (centre of its tip (3,) mm, radius mm) (pin_tips)."""
+    (centre of its tip (3,) mm, radius mm) (joint_directions)."""
     from .geometry import solid_of
 
     hull_points = None
@@ -284,33 +284,23 @@ def base_cut(mesh, pose, what="piece"):
 
 
 def joint_directions(joints):
-    """{piece id: [(3,) pin directions]} and {piece id: [(3,) directions its holes open towards]}: a pin leaves its
-    piece along the joint's direction, the hole it enters opens back against it; a dowel's two holes open towards
-    each other."""
+    """{piece id: [(3,) pin directions]}, {piece id: [(3,) directions its holes open towards]} and {piece id:
+    [(centre of each pin's tip (3,) mm, radius mm)]}, the last in the order of the first: a pin leaves its piece along
+    the joint's direction, the hole it enters opens back against it; a dowel's two holes open towards each other."""
     from .grid import piece_id
 
-    pins, openings = {}, {}
+    pins, openings, tips = {}, {}, {}
     for j in joints or ():
         d = np.asarray(j.direction, float)
         if j.style == "pin":
             pins.setdefault(piece_id(j.pin_cell), []).append(d)
+            tips.setdefault(piece_id(j.pin_cell), []).append((np.asarray(j.center, float) + float(j.length) * d,
+                                                               float(j.radius)))
         elif j.style == "dowel":
             openings.setdefault(piece_id(j.pin_cell), []).append(d)
         if j.style in ("pin", "dowel"):
             openings.setdefault(piece_id(j.hole_cell), []).append(-d)
-    return pins, openings
-
-
-def pin_tips(joints):
-    """{piece id: [(centre of the pin's tip (3,) mm, radius mm)]}, in the order of joint_directions' pins."""
-    from .grid import piece_id
-
-    tips = {}
-    for j in joints or ():
-        if j.style == "pin":
-            tip = np.asarray(j.center, float) + float(j.length) * np.asarray(j.direction, float)
-            tips.setdefault(piece_id(j.pin_cell), []).append((tip, float(j.radius)))
-    return tips
+    return pins, openings, tips
 
 
 def _resting(points, rot):
@@ -491,8 +481,7 @@ def plan_poses(pieces, joints, workers=None):
     volpuzzle.workers.Workers that plans some of them (the same poses)."""
     from .workers import MeshRef, map_pieces
 
-    pins, openings = joint_directions(joints)
-    tips = pin_tips(joints)
+    pins, openings, tips = joint_directions(joints)
     items = [(MeshRef(p.mesh), pins.get(p.id, ()), openings.get(p.id, ()), tips.get(p.id, ())) for p in pieces]
     poses = map_pieces(workers, _pose_one, items, what="layout")
     return {p.id: pose for p, pose in zip(pieces, poses, strict=True)}
@@ -553,7 +542,7 @@ def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=
     from .io.threemf import write_3mf
     from .workers import MeshRef, Remote
 
-    pin_dirs, openings = joint_directions(joints)
+    pin_dirs, openings, _ = joint_directions(joints)
     parts = [(p.id, p.mesh) for p in pieces] + list(dowels)
     rgb = {p.id: c for p, c in zip(pieces, colors, strict=True)}
     placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
