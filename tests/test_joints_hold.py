@@ -140,8 +140,8 @@ def test_a_crowded_piece_is_not_sent_to_the_coarser_grid_its_neighbours_room_ask
                  "reason": "no room: the face holds a pin of radius at most 0.6 mm with its clearance and wall"}]
     msg = J.graph_problem(ids, [("p1-0-0", "p2-0-0")], contacts, grid=(3, 1, 1), roomy=((2, 1, 1), 1.0, 3.0))
     assert msg.startswith("joints: piece p0-0-0 gets no joint; between p0-0-0 and p1-0-0, crowded")
-    assert msg.endswith("(got grid [3, 1, 1], expected a smaller joints.radius, a coarser grid, or joints.allow: "
-                        "[loose])")
+    assert msg.endswith("(got grid [3, 1, 1], expected a smaller joints.radius, a larger model.size, a coarser grid, "
+                        "or joints.allow: [loose])")
     assert "[2, 1, 1]" not in msg
     flipped = J.graph_problem(ids, [("p1-0-0", "p2-0-0")], contacts[::-1], grid=(3, 1, 1),
                               roomy=((2, 1, 1), 1.0, 3.0))

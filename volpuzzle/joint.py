@@ -934,7 +934,9 @@ def graph_problem(piece_ids, edges, contacts=(), style="pin", allow=(), grid=Non
         size = f"joints.min_radius at most {best:g}" + (f" and joints.min_length at most {length:g}" if length else "")
         advice = (f"{size} there, " if best > 0 else "") + advice
     elif shown_reason.startswith("crowded"):
-        advice = "a smaller joints.radius, " + advice
+        # the other joints of its pieces crowd it: smaller joints or larger cells make room (the 4x4x64 twisted
+        # torus stays crowded with joints.radius 1 at 150 mm and builds at model.size 300)
+        advice = "a smaller joints.radius, a larger model.size, " + advice
     elif shown_reason.startswith("tilt"):
         # smaller blocks have flatter splits; a bumpy warp tilts them further
         advice = ("more pieces along the curved axis" + (" or a smaller randomize.amplitude" if randomized else "")
