@@ -571,3 +571,14 @@ def test_garbage_text_raises_only_spec_errors(folder, text):
         load(folder, text)
     except SpecError as exc:
         assert exc.problems
+
+
+def test_a_builtin_parameter_out_of_range_is_a_spec_problem_of_the_file(folder):
+    # checked while the spec is read, not when the model is built, so it names the spec file and comes with the
+    # spec's other problems in one round
+    data = {"name": "t", "model": {"builtin": {"type": "twisted-torus", "minor_radius": -3}}, "grid": [2, 0, 8]}
+    with pytest.raises(SpecError) as info:
+        load(folder, data)
+    assert str(info.value).startswith(f"{folder / 'spec.yaml'}: 2 problems: ")
+    assert "model.builtin.minor_radius: must be positive (got -3, expected > 0)" in info.value.problems
+    assert any(p.startswith("grid[1]: ") for p in info.value.problems)

@@ -500,6 +500,14 @@ class _Checker:
             self.bad("model.builtin.type", "not a shape name", _show(value["type"]),
                      "the name of a built-in shape, e.g. twisted-torus")
             ok = False
+        if ok:  # its parameters' ranges too, so that the message names the spec file and comes with the others
+            from .models import validate_builtin
+
+            try:
+                validate_builtin(out)
+            except SpecError as e:
+                self.problems.extend(e.problems)
+                ok = False
         return out if ok else None
 
     def cage(self, value):
