@@ -235,7 +235,8 @@ def test_point_triangle_kernel_matches_trimesh_and_handles_collapsed_triangles()
     tri[400:800] = tri[400:800, :1]  # a point
     tri[800:1200, 2] = tri[800:1200, 0] + (tri[800:1200, 1] - tri[800:1200, 0]) / 3  # collinear: the segment ab
     p = rng.normal(size=(n, 3)) * 2
-    got = nearest_distances(p, tri, np.arange(n)[:, None])
+    v, f = tri.reshape(-1, 3), np.arange(3 * n).reshape(n, 3)  # the kernel reads triangles through their vertices
+    got = nearest_distances(p, v, f, np.arange(n)[:, None])
     # reference: dense samples of each collapsed triangle's segment, trimesh's closest point on the rest
     ref = np.linalg.norm(p - trimesh.triangles.closest_point(tri, p), axis=1)
     s = np.linspace(0.0, 1.0, 20001)[None, :, None]
@@ -246,8 +247,8 @@ def test_point_triangle_kernel_matches_trimesh_and_handles_collapsed_triangles()
     assert np.all(got <= ref + 1e-9) and np.allclose(got, ref, atol=1e-6)
     # the minimum over several candidates per point, starting from a given bound
     near = rng.integers(0, n, size=(n, 5))
-    want = np.minimum(0.5, np.min([nearest_distances(p, tri, near[:, [j]]) for j in range(5)], axis=0))
-    assert np.array_equal(nearest_distances(p, tri, near, np.full(n, 0.5)), want)
+    want = np.minimum(0.5, np.min([nearest_distances(p, v, f, near[:, [j]]) for j in range(5)], axis=0))
+    assert np.array_equal(nearest_distances(p, v, f, near, np.full(n, 0.5)), want)
 
 
 def test_load_reports_a_simplified_mesh(dense_sphere, tmp_path, monkeypatch):

