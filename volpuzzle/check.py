@@ -479,25 +479,39 @@ def _cylinder(center, direction, radius, start, stop):
     return cyl
 
 
-def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02) -> list:
+def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, workers=None) -> list:
     """Every pin inside its hole with its clearance, on the real meshes -> list of failure sentences.
 
     meshes: {piece id: closed trimesh in mm}; joints: report.json joint entries. A pin's core (90% of its radius and
     length) must lie inside the pin piece, and the pin grown by half its clearance must not touch the hole piece
-    (both within `share` of the tested volume, which absorbs the polygonal circles)."""
+    (both within `share` of the tested volume, which absorbs the polygonal circles). workers: a
+    volpuzzle.workers.Workers that tests some of the joints (the same sentences, in joint order)."""
+    from .workers import MeshRef, map_pieces
+
+    tested = [j for j in joints if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
+    used = {j[key] for j in tested for key in ("pin_piece", "hole_piece")}
+    # consecutive joints share their pieces (they are listed face by face), so a chunk's pieces are few
+    chunks = [tested[c:c + _JOINTS_PER_TASK] for c in range(0, len(tested), _JOINTS_PER_TASK)]
+    found = map_pieces(workers, _joint_failures, chunks, shared=({pid: MeshRef(meshes[pid]) for pid in used}, share),
+                       what="check")
+    return [f for chunk in found for f in chunk]
+
+
+_JOINTS_PER_TASK = 16  # joints per worker task: ~7 ms of Booleans each
+
+
+def _joint_failures(shared, joints):
+    """check_joints' failure sentences for joints (report entries whose pieces are in shared), wherever they are
+    tested: shared ({piece id: MeshRef}, share)."""
+    refs, share = shared
     failures = []
-    solids = {}
 
     def solid(pid):
-        if pid not in solids:
-            m = piece_solid(meshes[pid], pid)
-            solids[pid] = m if not isinstance(m, str) else None
-        return solids[pid]
+        m = piece_solid(refs[pid].mesh, pid)
+        return m if not isinstance(m, str) else None
 
     for j in joints:
         pin, hole = j.get("pin_piece"), j.get("hole_piece")
-        if pin not in meshes or hole not in meshes:
-            continue
         c, d = j["center_mm"], j["direction"]
         r, length, cl = float(j["radius_mm"]), float(j["length_mm"]), float(j.get("clearance_mm", 0.0))
         a, b = solid(pin), solid(hole)
