@@ -487,38 +487,10 @@ def _segments(fd, s, side):
     return fd.x, p1, rho
 
 
-def _apart(p0, p1, rp, q0, q1, rq, gap, cyl=None):
+def _apart(p0, p1, rp, q0, q1, rq, gap):
     """(k,) bool: cylinders of axes p0 -> p1 (k, 3) radius rp and q0 -> q1 (3,) radius rq are at least gap apart:
-    their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the other. cyl:
-    the _Cylinders of p0, p1, rp, when made already."""
-    cyl = _Cylinders(p0, p1, rp) if cyl is None else cyl
-    d1, a, u1 = cyl.d1, cyl.a, cyl.u1
-    d2 = q1 - q0
-    r = p0 - q0
-    e = float(d2 @ d2)
-    f = r @ d2
-    c = np.einsum("ki,ki->k", d1, r)
-    bb = d1 @ d2
-    denom = a * e - bb * bb
-    s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
-    t = (bb * s + f) / e
-    s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
-    t = np.clip(t, 0.0, 1.0)
-    dist = np.linalg.norm(p0 + d1 * s[:, None] - (q0 + d2 * t[:, None]), axis=1)
-    ok = dist >= rp + rq + gap - 1e-9
-    u2 = d2 / np.sqrt(e)
-    cs = np.clip(u1 @ u2, -1.0, 1.0)
-    sn = np.sqrt(1.0 - cs * cs)
-    # q beyond an end plane of p
-    q_lo = np.minimum(u1 @ q0, u1 @ q1) - rq * sn
-    q_hi = np.maximum(u1 @ q0, u1 @ q1) + rq * sn
-    ok |= (q_lo >= cyl.p_hi + gap - 1e-9) | (q_hi <= cyl.p_lo - gap + 1e-9)
-    # p beyond an end plane of q
-    pp0, pp1 = p0 @ u2, p1 @ u2
-    lo2 = np.minimum(pp0, pp1) - rp * sn
-    hi2 = np.maximum(pp0, pp1) + rp * sn
-    ok |= (lo2 >= max(q0 @ u2, q1 @ u2) + gap - 1e-9) | (hi2 <= min(q0 @ u2, q1 @ u2) - gap + 1e-9)
-    return ok
+    their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the other."""
+    return _Cylinders(p0, p1, rp).apart_all([(q0, q1, rq)], gap)
 
 
 def _size_steps(sizes, r_min, l_min):
@@ -783,11 +755,8 @@ def _greedy(data, steps, order, cells, sides=None, memo=None):
                 continue
             ok = fit.copy()
             for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
-                cyl = segs[side]
-                for q0, q1, rq in inside[idx]:
-                    ok &= cyl.apart(q0, q1, rq, s.wall)
-                    if not ok.any():
-                        break
+                if inside[idx] and ok.any():
+                    ok &= segs[side].apart_all(inside[idx], s.wall)
             while ok.any():
                 k = int(np.argmax(np.where(ok, score, -np.inf)))
                 if sides is None or sides.clear(fd, k, s):
@@ -814,8 +783,8 @@ def _fit_of(memo, fd, i, s):
 
 
 class _Cylinders:
-    """Cylinders of axes p0 -> p1 (k, 3) and radius rp, with what _apart computes of them alone, computed once for
-    all the joints they are tested against."""
+    """Cylinders of axes p0 -> p1 (k, 3) and radius rp, with what their tests against other cylinders need of them
+    alone, computed once for all the joints they are tested against (apart_all)."""
 
     __slots__ = ("p0", "p1", "rp", "d1", "a", "u1", "p_lo", "p_hi")
 
@@ -827,9 +796,43 @@ class _Cylinders:
         e0, e1 = np.einsum("ki,ki->k", self.u1, p0), np.einsum("ki,ki->k", self.u1, p1)
         self.p_lo, self.p_hi = np.minimum(e0, e1), np.maximum(e0, e1)
 
-    def apart(self, q0, q1, rq, gap):
-        """_apart(p0, p1, rp, q0, q1, rq, gap), the same arithmetic."""
-        return _apart(self.p0, self.p1, self.rp, q0, q1, rq, gap, self)
+    def apart_all(self, others, gap):
+        """(k,) bool: each of these cylinders is at least gap apart from every one of others [(q0 (3,), q1 (3,),
+        rq)] (m of them, tested at once): their axes are that far beyond both radii, or one lies wholly that far
+        beyond an end plane of the other."""
+        q0 = np.array([q[0] for q in others])  # (m, 3)
+        q1 = np.array([q[1] for q in others])
+        rq = np.array([q[2] for q in others])  # (m,)
+        p0, p1, rp, d1, a, u1 = self.p0, self.p1, self.rp, self.d1, self.a[:, None], self.u1
+        d2 = q1 - q0
+        r = p0[:, None, :] - q0[None, :, :]  # (k, m, 3)
+        e = np.einsum("mi,mi->m", d2, d2)
+        f = np.einsum("kmi,mi->km", r, d2)
+        c = np.einsum("ki,kmi->km", d1, r)
+        bb = np.einsum("ki,mi->km", d1, d2)
+        denom = a * e - bb * bb
+        s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
+                     0.0)
+        t = (bb * s + f) / e
+        s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
+        t = np.clip(t, 0.0, 1.0)
+        dist = np.linalg.norm(p0[:, None, :] + d1[:, None, :] * s[:, :, None] - (q0 + d2 * t[:, :, None]), axis=2)
+        ok = dist >= rp + rq + gap - 1e-9
+        u2 = d2 / np.sqrt(e)[:, None]
+        cs = np.clip(np.einsum("ki,mi->km", u1, u2), -1.0, 1.0)
+        sn = np.sqrt(1.0 - cs * cs)
+        # q beyond an end plane of p
+        e0, e1 = np.einsum("ki,mi->km", u1, q0), np.einsum("ki,mi->km", u1, q1)
+        q_lo = np.minimum(e0, e1) - rq * sn
+        q_hi = np.maximum(e0, e1) + rq * sn
+        ok |= (q_lo >= self.p_hi[:, None] + gap - 1e-9) | (q_hi <= self.p_lo[:, None] - gap + 1e-9)
+        # p beyond an end plane of q
+        pp0, pp1 = np.einsum("ki,mi->km", p0, u2), np.einsum("ki,mi->km", p1, u2)
+        lo2 = np.minimum(pp0, pp1) - rp * sn
+        hi2 = np.maximum(pp0, pp1) + rp * sn
+        f0, f1 = np.einsum("mi,mi->m", q0, u2), np.einsum("mi,mi->m", q1, u2)
+        ok |= (lo2 >= np.maximum(f0, f1) + gap - 1e-9) | (hi2 <= np.minimum(f0, f1) - gap + 1e-9)
+        return ok.all(axis=1)
 
 
 def _cost(chosen, sizes, data, cells):
