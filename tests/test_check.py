@@ -229,3 +229,33 @@ def test_a_snap_joint_fits_its_own_necked_hole():
     # a hole not dug is still found
     meshes["b"] = mesh(above)
     assert "does not fit its hole in b" in check_joints(meshes, [joint])[0]
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_pairs_whose_parts_lie_apart_need_no_boolean(monkeypatch, exact):
+    # a bar across a box's edge, 0.5 mm off it, their boxes overlapping: the parts' extents prove them disjoint
+    # without the engine, and the figures are the Boolean's (0 and the same error bound)
+    from volpuzzle import check as C
+    from volpuzzle.assembly import parts_apart, piece_extents
+    from volpuzzle.workers import MeshRef
+
+    near = trimesh.creation.box([10, 10, 10]).subdivide()
+    bar = trimesh.creation.box([10, 2, 2]).subdivide()
+    bar.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [0, 1, 0]))
+    bar.apply_translation(np.array([5.0, 0.0, 5.0]) + 1.5 * np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0))
+    assert np.all(np.minimum(near.bounds[1], bar.bounds[1]) > np.maximum(near.bounds[0], bar.bounds[0]))
+    inside = trimesh.creation.box([4, 4, 4]).apply_translation([4, 0, 0])  # overlaps near by 3 x 4 x 4
+    meshes = {0: near, 1: bar, 2: inside}
+    assert parts_apart(piece_extents(near), piece_extents(bar))
+    assert not parts_apart(piece_extents(near), piece_extents(inside))
+    assert not parts_apart(piece_extents(near), piece_extents(bar), shift=[-0.5, 0, -0.5])  # moved onto the edge
+    shared = ({k: (MeshRef(m), f"p{k}") for k, m in meshes.items()}, exact, 0.01)
+    measured = C._overlaps(shared, [(0, 1), (0, 2)])
+    solids = [C.piece_solid(m, f"p{k}") for k, m in meshes.items()]
+    booleans = (lambda a, b: (C.overlap_volume(a, b), 0.0)) if exact else (lambda a, b: C.shifted_overlap(a, b, 0.01))
+    assert measured == [booleans(solids[0], solids[1]), booleans(solids[0], solids[2])]
+    assert measured[0][0] == 0.0 and measured[1][0] == pytest.approx(48.0, abs=0.1)
+    calls = []
+    real = C.overlap_volume
+    monkeypatch.setattr(C, "overlap_volume", lambda a, b: calls.append(1) or real(a, b))
+    assert C._overlaps(shared, [(0, 1), (0, 2)]) == measured and len(calls) == 1

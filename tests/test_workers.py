@@ -323,3 +323,32 @@ def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, wor
     assert where[0] and (where[1] or not worker_busy)
     if busy is not None:
         assert busy.result() == 1.0
+
+
+@pytest.mark.parametrize("per_task", [1, 2])
+def test_joint_checks_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_task):
+    import manifold3d as m3
+
+    from volpuzzle import check
+
+    def mesh(solid):
+        out = solid.to_mesh()
+        return trimesh.Trimesh(out.vert_properties[:, :3], out.tri_verts, process=True)
+
+    pin = m3.Manifold.cylinder(3.0, 1.0, 1.0, 48)
+    below = m3.Manifold.cube([10, 10, 5], True).translate([0, 0, -2.5])
+    above = m3.Manifold.cube([10, 10, 5], True).translate([0, 0, 2.5])
+    meshes = {"a": mesh(below + pin), "b": mesh(above - m3.Manifold.cylinder(3.3, 1.15, 1.15, 48)),
+              "c": mesh(above.translate([20, 0, 0])), "d": mesh(below.translate([20, 0, 0]))}
+    joint = {"center_mm": [0, 0, 0], "direction": [0, 0, 1], "radius_mm": 1.0, "length_mm": 3.0,
+             "clearance_mm": 0.15, "style": "pin", "shape": "cylinder"}
+    joints = [dict(joint, pin_piece="a", hole_piece="b"),  # fits
+              dict(joint, pin_piece="d", hole_piece="c", center_mm=[20, 0, 0]),  # no pin, no hole
+              dict(joint, pin_piece="a", hole_piece="x"),  # a piece not given: not tested
+              dict(joint, pin_piece="a", hole_piece="c", center_mm=[20, 0, 0])]  # no pin there, c in the way
+    serial = check.check_joints(meshes, joints)
+    assert len(serial) == 4 and "the pin of d is missing" in serial[0] and "hole in c" in serial[1]
+    monkeypatch.setattr(check, "_JOINTS_PER_TASK", per_task)
+    for main_takes in (False, True):
+        monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
+        assert check.check_joints(meshes, joints, workers=pool) == serial

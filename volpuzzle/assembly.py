@@ -629,15 +629,34 @@ def _chunk_extents(verts, faces, chunks=8):
     return np.array(out)
 
 
+def piece_extents(mesh):
+    """_chunk_extents of a closed trimesh, made once per mesh (geometry.memo): the build's overlap check and the
+    assembly replay test the same pieces. -> (chunks, 2, k)"""
+    from .geometry import memo
+
+    return memo(mesh, "extents", lambda: _chunk_extents(mesh.vertices, mesh.faces))
+
+
+def parts_apart(ea, eb, shift=None, margin=0.0) -> bool:
+    """Whether two solids are proved disjoint by their parts' extents (ea, eb: piece_extents, the second solid moved
+    by shift (3,) mm): every part of the one lies more than margin mm from every part of the other along one of the
+    directions (see _chunk_extents)."""
+    move = 0.0 if shift is None else _DIRS @ np.asarray(shift, float)
+    lo_b, hi_b = eb[:, 0, :] + move, eb[:, 1, :] + move
+    apart = ((ea[:, None, 1, :] + margin < lo_b[None, :, :]) | (hi_b[None, :, :] + margin < ea[:, None, 0, :]))
+    return bool(apart.any(axis=2).all())
+
+
 class _Scene:
     """Pieces as manifolds with their vertices, boxes and volumes; counts the Booleans."""
 
     def __init__(self, pieces):
         self.ids = sorted(pieces)
-        self.man, self.verts, self.box, self.vol, self._faces, self._ext = {}, {}, {}, {}, {}, {}
+        self.man, self.verts, self.box, self.vol, self._faces, self._meshes = {}, {}, {}, {}, {}, {}
         for pid in self.ids:
             mesh = pieces[pid]
             mesh = getattr(mesh, "mesh", mesh)
+            self._meshes[pid] = mesh
             self.man[pid] = _as_manifold(mesh, pid)
             self.verts[pid] = np.asarray(mesh.vertices, dtype=float)
             self._faces[pid] = np.asarray(mesh.faces)
@@ -646,9 +665,7 @@ class _Scene:
         self.booleans = 0
 
     def extents(self, pid):
-        if pid not in self._ext:
-            self._ext[pid] = _chunk_extents(self.verts[pid], self._faces[pid])
-        return self._ext[pid]
+        return piece_extents(self._meshes[pid])
 
     def _may_meet(self, pm_id, pf_id, ts, d, lim):
         """Bool per offset in ts: whether moving pm_id by t * d might make it overlap pf_id by more than lim.

@@ -490,37 +490,7 @@ def _segments(fd, s, side):
 def _apart(p0, p1, rp, q0, q1, rq, gap):
     """(k,) bool: cylinders of axes p0 -> p1 (k, 3) radius rp and q0 -> q1 (3,) radius rq are at least gap apart:
     their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the other."""
-    d1 = p1 - p0
-    d2 = q1 - q0
-    r = p0 - q0
-    a = np.einsum("ki,ki->k", d1, d1)
-    e = float(d2 @ d2)
-    f = r @ d2
-    c = np.einsum("ki,ki->k", d1, r)
-    bb = d1 @ d2
-    denom = a * e - bb * bb
-    s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
-    t = (bb * s + f) / e
-    s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
-    t = np.clip(t, 0.0, 1.0)
-    dist = np.linalg.norm(p0 + d1 * s[:, None] - (q0 + d2 * t[:, None]), axis=1)
-    ok = dist >= rp + rq + gap - 1e-9
-    u1 = d1 / np.sqrt(a)[:, None]
-    u2 = d2 / np.sqrt(e)
-    cs = np.clip(u1 @ u2, -1.0, 1.0)
-    sn = np.sqrt(1.0 - cs * cs)
-    # q beyond an end plane of p
-    q_lo = np.minimum(u1 @ q0, u1 @ q1) - rq * sn
-    q_hi = np.maximum(u1 @ q0, u1 @ q1) + rq * sn
-    p_lo = np.minimum(np.einsum("ki,ki->k", u1, p0), np.einsum("ki,ki->k", u1, p1))
-    p_hi = np.maximum(np.einsum("ki,ki->k", u1, p0), np.einsum("ki,ki->k", u1, p1))
-    ok |= (q_lo >= p_hi + gap - 1e-9) | (q_hi <= p_lo - gap + 1e-9)
-    # p beyond an end plane of q
-    pp0, pp1 = p0 @ u2, p1 @ u2
-    lo2 = np.minimum(pp0, pp1) - rp * sn
-    hi2 = np.maximum(pp0, pp1) + rp * sn
-    ok |= (lo2 >= max(q0 @ u2, q1 @ u2) + gap - 1e-9) | (hi2 <= min(q0 @ u2, q1 @ u2) - gap + 1e-9)
-    return ok
+    return _Cylinders(p0, p1, rp).apart_all([(q0, q1, rq)], gap)
 
 
 def _size_steps(sizes, r_min, l_min):
@@ -609,24 +579,28 @@ class _Sides:
         """mm (n,) from points p (n, 3) to the nearest of the cell's faces other than keep_out (axis, end): across the
         tangent plane of the nearest sample inside a face, straight to a sample on its rim. Faces whose box lies
         `beyond` mm or more from the points' box are skipped (their distance counts as inf)."""
-        out = np.full(len(p), np.inf)
         lo, hi = p.min(axis=0), p.max(axis=0)
+        near_faces = []
         for axis in range(3):
             for end in (0, 1):
                 if (axis, end) == keep_out:
                     continue
                 x, nrm, inner, box = self._face(idx, axis, end)
                 gap = np.maximum(np.maximum(box[0] - hi, lo - box[1]), 0.0)
-                if float(np.linalg.norm(gap)) >= beyond:
-                    continue
-                diff = p[:, None, :] - x[None, :, :]
-                dist = np.einsum("nmi,nmi->nm", diff, diff)
-                near = np.argmin(dist, axis=1)
-                rows = np.arange(len(p))
-                plane = np.abs(np.einsum("ni,ni->n", diff[rows, near], nrm[near]))
-                d = np.where(inner[near] & np.any(nrm[near] != 0.0, axis=1), plane, np.sqrt(dist[rows, near]))
-                out = np.minimum(out, d)
-        return out
+                if float(np.linalg.norm(gap)) < beyond:
+                    near_faces.append((x, nrm, inner))
+        if not near_faces:
+            return np.full(len(p), np.inf)
+        # the faces at once (f of them, m samples each): one array operation each instead of one per face
+        x, nrm, inner = (np.stack(parts) for parts in zip(*near_faces, strict=True))
+        diff = p[None, :, None, :] - x[:, None, :, :]  # (f, n, m, 3)
+        dist = np.einsum("fnmi,fnmi->fnm", diff, diff)
+        near = np.argmin(dist, axis=2)  # (f, n)
+        fi, ni = np.arange(len(x))[:, None], np.arange(len(p))[None, :]
+        at = nrm[fi, near]
+        plane = np.abs(np.einsum("fni,fni->fn", diff[fi, ni, near], at))
+        d = np.where(inner[fi, near] & np.any(at != 0.0, axis=2), plane, np.sqrt(dist[fi, ni, near]))
+        return d.min(axis=0)
 
     def clear(self, fd, k, s):
         """Whether the joint at point k of face fd at size s keeps its radius and SIDE_WALL of a wall to every other
@@ -727,14 +701,15 @@ def _place(tiling, fmap, setup, plan):
     alone = {fd.n: int(_fits(fd, smallest).sum()) for fd in data}
     order = sorted(range(len(data)), key=lambda n: (n not in first, alone[n], n))
     cells = list(tiling.cells)
-    chosen = _greedy(data, steps, order, cells, setup.sides)
+    memo = {}  # the reruns below place the same faces at the same sizes again
+    chosen = _greedy(data, steps, order, cells, setup.sides, memo)
     for _ in range(4):
         # a face that shrank or got nothing goes first next time, kept if the puzzle is better for it
         late = [n for n in order if n not in chosen or chosen[n][1] is not sizes]
         if not late:
             break
         order = sorted(order, key=lambda n: n not in late)
-        again = _greedy(data, steps, order, cells, setup.sides)
+        again = _greedy(data, steps, order, cells, setup.sides, memo)
         if _cost(again, sizes, data, cells) >= _cost(chosen, sizes, data, cells):
             break
         chosen = again
@@ -764,26 +739,24 @@ def _place(tiling, fmap, setup, plan):
                    "min_length_mm": l_min})
 
 
-def _greedy(data, steps, order, cells, sides=None):
+def _greedy(data, steps, order, cells, sides=None, memo=None):
     """Faces in `order`, each at its roomiest point that fits and keeps a wall to the joints already placed in its two
     cells, at the largest size of `steps` that has such a point -> {face number: (point index, _Sizes)}. sides
-    (_Sides): the point is also measured against the cells' real side faces."""
+    (_Sides): the point is also measured against the cells' real side faces. memo: a dict kept between calls on the
+    same data and steps, for what does not depend on the joints placed (_fit_of)."""
+    memo = {} if memo is None else memo
     inside = {idx: [] for idx in cells}  # cell -> [(p0, p1, radius)] of the joints already placed in it
     chosen = {}
     for n in order:
         fd = data[n]
-        score = _room_score(fd)
-        for s in steps:
-            ok = _fits(fd, s)
-            if not ok.any():
+        for i, s in enumerate(steps):
+            fit, score, segs = _fit_of(memo, fd, i, s)
+            if fit is None:
                 continue
-            segs = {side: _segments(fd, s, side) for side in (-1, +1)}
+            ok = fit.copy()
             for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
-                p0, p1, rp = segs[side]
-                for q0, q1, rq in inside[idx]:
-                    ok &= _apart(p0, p1, rp, q0, q1, rq, s.wall)
-                    if not ok.any():
-                        break
+                if inside[idx] and ok.any():
+                    ok &= segs[side].apart_all(inside[idx], s.wall)
             while ok.any():
                 k = int(np.argmax(np.where(ok, score, -np.inf)))
                 if sides is None or sides.clear(fd, k, s):
@@ -792,10 +765,74 @@ def _greedy(data, steps, order, cells, sides=None):
             if ok.any():
                 chosen[n] = (k, s)
                 for side, idx in ((-1, fd.face.lower), (+1, fd.face.upper)):
-                    p0, p1, rp = segs[side]
-                    inside[idx].append((p0[k].copy(), p1[k].copy(), rp))
+                    cyl = segs[side]
+                    inside[idx].append((cyl.p0[k].copy(), cyl.p1[k].copy(), cyl.rp))
                 break
     return chosen
+
+
+def _fit_of(memo, fd, i, s):
+    """(_fits (k,) or None where no point fits, _room_score (k,), {side: _Cylinders}) of face fd at size s = steps[i],
+    computed once per memo: what _greedy asks of a face whatever joints are placed already."""
+    key = (fd.n, i)
+    if key not in memo:
+        ok = _fits(fd, s)
+        memo[key] = ((None, None, None) if not ok.any() else
+                     (ok, _room_score(fd), {side: _Cylinders(*_segments(fd, s, side)) for side in (-1, +1)}))
+    return memo[key]
+
+
+class _Cylinders:
+    """Cylinders of axes p0 -> p1 (k, 3) and radius rp, with what their tests against other cylinders need of them
+    alone, computed once for all the joints they are tested against (apart_all)."""
+
+    __slots__ = ("p0", "p1", "rp", "d1", "a", "u1", "p_lo", "p_hi")
+
+    def __init__(self, p0, p1, rp):
+        self.p0, self.p1, self.rp = p0, p1, rp
+        self.d1 = p1 - p0
+        self.a = np.einsum("ki,ki->k", self.d1, self.d1)
+        self.u1 = self.d1 / np.sqrt(self.a)[:, None]
+        e0, e1 = np.einsum("ki,ki->k", self.u1, p0), np.einsum("ki,ki->k", self.u1, p1)
+        self.p_lo, self.p_hi = np.minimum(e0, e1), np.maximum(e0, e1)
+
+    def apart_all(self, others, gap):
+        """(k,) bool: each of these cylinders is at least gap apart from every one of others [(q0 (3,), q1 (3,),
+        rq)] (m of them, tested at once): their axes are that far beyond both radii, or one lies wholly that far
+        beyond an end plane of the other."""
+        q0 = np.array([q[0] for q in others])  # (m, 3)
+        q1 = np.array([q[1] for q in others])
+        rq = np.array([q[2] for q in others])  # (m,)
+        p0, p1, rp, d1, a, u1 = self.p0, self.p1, self.rp, self.d1, self.a[:, None], self.u1
+        d2 = q1 - q0
+        r = p0[:, None, :] - q0[None, :, :]  # (k, m, 3)
+        e = np.einsum("mi,mi->m", d2, d2)
+        f = np.einsum("kmi,mi->km", r, d2)
+        c = np.einsum("ki,kmi->km", d1, r)
+        bb = np.einsum("ki,mi->km", d1, d2)
+        denom = a * e - bb * bb
+        s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
+                     0.0)
+        t = (bb * s + f) / e
+        s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
+        t = np.clip(t, 0.0, 1.0)
+        dist = np.linalg.norm(p0[:, None, :] + d1[:, None, :] * s[:, :, None] - (q0 + d2 * t[:, :, None]), axis=2)
+        ok = dist >= rp + rq + gap - 1e-9
+        u2 = d2 / np.sqrt(e)[:, None]
+        cs = np.clip(np.einsum("ki,mi->km", u1, u2), -1.0, 1.0)
+        sn = np.sqrt(1.0 - cs * cs)
+        # q beyond an end plane of p
+        e0, e1 = np.einsum("ki,mi->km", u1, q0), np.einsum("ki,mi->km", u1, q1)
+        q_lo = np.minimum(e0, e1) - rq * sn
+        q_hi = np.maximum(e0, e1) + rq * sn
+        ok |= (q_lo >= self.p_hi[:, None] + gap - 1e-9) | (q_hi <= self.p_lo[:, None] - gap + 1e-9)
+        # p beyond an end plane of q
+        pp0, pp1 = np.einsum("ki,mi->km", p0, u2), np.einsum("ki,mi->km", p1, u2)
+        lo2 = np.minimum(pp0, pp1) - rp * sn
+        hi2 = np.maximum(pp0, pp1) + rp * sn
+        f0, f1 = np.einsum("mi,mi->m", q0, u2), np.einsum("mi,mi->m", q1, u2)
+        ok |= (lo2 >= np.maximum(f0, f1) + gap - 1e-9) | (hi2 <= np.minimum(f0, f1) - gap + 1e-9)
+        return ok.all(axis=1)
 
 
 def _cost(chosen, sizes, data, cells):

@@ -295,7 +295,8 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
         checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
         # every pin in its hole on the pieces as written, as `volpuzzle check` judges them: a label, a base cut or
         # the float32 rounding after the joints were cut must not pass here and fail there
-        joint_failures = check_joints({p.id: p.mesh for p in pieces}, [j.to_report() for j in s.joints])
+        joint_failures = check_joints({p.id: p.mesh for p in pieces}, [j.to_report() for j in s.joints],
+                                      workers=workers)
         checks["failures"] = checks["failures"] + joint_failures
         checks["passed"] = checks["passed"] and not joint_failures
     checks["base_cuts_mm3"] = round(cut, 3)
