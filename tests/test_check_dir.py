@@ -45,6 +45,15 @@ def test_a_fresh_build_passes(built):
     assert CliRunner().invoke(cli, ["check", str(built)]).exit_code == 0
 
 
+def test_a_piece_file_the_report_does_not_list_is_named(built, copy):
+    assert not check_directory(built)["printability"]["warnings"]
+    shutil.copy(copy / "pieces" / "p0-0-0.stl", copy / "pieces" / "old-p9.stl")
+    (warning,) = check_directory(copy)["printability"]["warnings"]
+    assert warning.startswith("pieces/old-p9.stl: in the folder but not a piece of report.json (expected only its 4 ")
+    result = CliRunner().invoke(cli, ["check", str(copy)])
+    assert result.exit_code == 0 and "warning: pieces/old-p9.stl: in the folder" in result.output
+
+
 def test_piece_moved_into_its_neighbour(copy):
     report = json.loads((copy / "report.json").read_text())
     j = report["joints"][0]

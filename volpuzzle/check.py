@@ -637,6 +637,7 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     checks["joints_checked"] = len(joints)
     graph_failures, checks["joint_graph"] = check_joint_graph(report)
     checks["printability"] = check_printability(report, dict(pieces))
+    checks["printability"]["warnings"] += _unlisted_piece_files(directory, entries)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
                           + joint_failures + graph_failures + checks["printability"]["failures"]
                           + _report_volume_problems(report, dict(pieces)))
@@ -648,6 +649,24 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     if raise_on_failure:
         assert_passed(checks, str(directory))
     return checks
+
+
+def _unlisted_piece_files(directory: Path, entries) -> list:
+    """A file in a piece folder that report.json does not list (copied in, or left from something else) would be
+    printed with the puzzle without being part of it -> one warning per folder, naming the files."""
+    listed = {Path(rel.replace("\\", "/")).as_posix().lstrip("./") for _, rel in entries}
+    warnings = []
+    for folder in sorted({Path(rel.replace("\\", "/")).parent.as_posix() for rel in listed} - {"."}):
+        path = directory / folder
+        if path.is_symlink() or not path.is_dir():
+            continue
+        extra = sorted(f"{folder}/{f.name}" for f in path.iterdir()
+                       if f.is_file() and f"{folder}/{f.name}" not in listed)
+        if extra:
+            shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more" if len(extra) > 3 else "")
+            warnings.append(f"{shown}: in the folder but not a piece of report.json (expected only its "
+                            f"{len(listed)} pieces there; remove it before printing the folder)")
+    return warnings
 
 
 REPORT_VOLUME_RTOL = 1e-3  # the build measures the very mesh it writes: a 3MF's or STL's float rounding is ~1e-7
