@@ -127,3 +127,25 @@ def test_a_sphere_shell_without_periodic_keeps_its_seam_apart_and_pinned(tmp_pat
     assert len(report["joints"]) == 2
     printable = check_directory(tmp_path / "out")["printability"]
     assert not [w for w in printable["warnings"] if "come within" in w]
+
+
+@pytest.mark.parametrize("side", ["min", "max"])
+def test_a_point_across_a_twisted_seam_is_moved_into_the_cell_as_the_seam_maps_it(side):
+    # the apex set-back gathers a cell's points by parameters; a point stored on the seam's other face must land in
+    # the cell at the same place in space, which for the twisted torus (swap and flip) is more than a period's shift
+    from types import SimpleNamespace
+
+    from volpuzzle.compose.lattice import PeriodicSeam
+    from volpuzzle.compose.surface import _in_box
+
+    vol = models.make_builtin({"type": "twisted-torus"})
+    seam = find_seams(vol)[2]
+    assert seam.swap or any(seam.flip)
+    sampling = SimpleNamespace(seams=(PeriodicSeam(2, seam.swap, seam.flip),), domain=np.array(vol.domain).T)
+    rng = np.random.default_rng(3)
+    uvw = np.column_stack([rng.uniform(0.05, 0.95, (20, 2)), np.full(20, 0.0 if side == "min" else 1.0)])
+    box = np.array([[0.0, 0.0, 0.875], [1.0, 1.0, 1.0]]) if side == "min" else np.array([[0, 0, 0], [1, 1, 0.125]])
+    moved = _in_box(uvw, box, sampling)
+    assert np.all((moved[:, 2] >= box[0, 2]) & (moved[:, 2] <= box[1, 2]))
+    assert not np.allclose(moved[:, :2], uvw[:, :2])  # the face coordinates were mapped, not only shifted
+    assert np.allclose(vol.evaluate(moved), vol.evaluate(uvw), atol=1e-9)

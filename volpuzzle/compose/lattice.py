@@ -147,3 +147,15 @@ def seen_through(st, seam):
         if seam.flip[k]:
             st[:, k] = 1.0 - st[:, k]
     return st
+
+
+def seen_back(st, seam):
+    """The inverse of seen_through: min face local coordinates (k, 2) -> the same points on the max face (flip,
+    then swap)."""
+    if seam is None:
+        return st
+    st = np.array(st, dtype=float)
+    for k in range(2):
+        if seam.flip[k]:
+            st[:, k] = 1.0 - st[:, k]
+    return st[:, ::-1] if seam.swap else st

@@ -7,7 +7,7 @@ import numpy as np
 
 from .. import geometry
 from ..grid import other_axes
-from .lattice import seen_through
+from .lattice import seen_back, seen_through
 from .sampling import WELD_MM
 
 _FADE = 4.0  # half-clearances over which points inside a face follow the slide of its set-back edge
@@ -403,14 +403,23 @@ def cell_surface(cell, sampling, fmap, face_clearance=0.0):
 
 
 def _in_box(uvw, box, sampling):
-    """uvw (n, 3) with each periodic parameter shifted by the period to where it lies in the cell box (2, 3)."""
+    """uvw (n, 3) with each point that lies across a periodic seam from the cell box (2, 3) moved to the seam's other
+    face, where the box reaches it: shifted by the period along the seam's axis and, for a seam that swaps or flips
+    the face coordinates (a twisted torus), with them mapped as the seam maps them."""
     uvw = np.array(uvw, dtype=float)
+    dom = np.asarray(sampling.domain, dtype=float)
     for seam in sampling.seams:
         a = seam.axis
-        period = float(sampling.domain[1, a] - sampling.domain[0, a])
+        b, c = other_axes(a)
+        lo, span_bc = dom[0, [b, c]], dom[1, [b, c]] - dom[0, [b, c]]
+        period = float(dom[1, a] - dom[0, a])
         span = box[1, a] - box[0, a]
-        uvw[uvw[:, a] > box[1, a] + 1e-9 * span, a] -= period
-        uvw[uvw[:, a] < box[0, a] - 1e-9 * span, a] += period
+        for rows, shift, move in ((uvw[:, a] > box[1, a] + 1e-9 * span, -period, seen_through),
+                                  (uvw[:, a] < box[0, a] - 1e-9 * span, period, seen_back)):
+            if rows.any() and (seam.swap or any(seam.flip)):  # (an identity seam keeps its coordinates' bits)
+                st = (uvw[np.ix_(rows, [b, c])] - lo) / span_bc
+                uvw[np.ix_(rows, [b, c])] = lo + move(st, seam) * span_bc
+            uvw[rows, a] += shift
     return uvw
 
 
