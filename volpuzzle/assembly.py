@@ -648,18 +648,18 @@ def parts_apart(ea, eb, shift=None, margin=0.0) -> bool:
 
 
 class _Scene:
-    """Pieces as manifolds with their vertices, boxes and volumes; counts the Booleans."""
+    """Pieces as manifolds with their vertices, faces, boxes and volumes; counts the Booleans."""
 
     def __init__(self, pieces):
         self.ids = sorted(pieces)
-        self.man, self.verts, self.box, self.vol, self._faces, self._meshes = {}, {}, {}, {}, {}, {}
+        self.man, self.verts, self.faces, self.box, self.vol, self._meshes = {}, {}, {}, {}, {}, {}
         for pid in self.ids:
             mesh = pieces[pid]
             mesh = getattr(mesh, "mesh", mesh)
             self._meshes[pid] = mesh
             self.man[pid] = _as_manifold(mesh, pid)
             self.verts[pid] = np.asarray(mesh.vertices, dtype=float)
-            self._faces[pid] = np.asarray(mesh.faces)
+            self.faces[pid] = np.asarray(mesh.faces)
             self.box[pid] = np.array([self.verts[pid].min(axis=0), self.verts[pid].max(axis=0)])
             self.vol[pid] = float(self.man[pid].volume())
         self.booleans = 0
@@ -930,7 +930,7 @@ class _Replay:
         """A worker's future for take_apart(block), or None when no worker slot is free."""
         if self.pool is None or self.free <= 0:
             return None
-        meshes = {piece_id(c): (self.scene.verts[piece_id(c)], self.scene._faces[piece_id(c)]) for c in block}
+        meshes = {piece_id(c): (self.scene.verts[piece_id(c)], self.scene.faces[piece_id(c)]) for c in block}
         fut = self.pool.submit(_replay_block, meshes, self.joints, self.plan, self.limit_frac, self.fine,
                                self.max_tries, self.groups, list(block))
         if fut is None:  # no worker has started yet (or the pool is shut)
