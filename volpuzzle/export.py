@@ -547,6 +547,36 @@ def _free_space_problem(parent: Path, items) -> str | None:
     return None
 
 
+class _DrawnAhead:
+    """A picture (a workers.Remote writer) begun in a worker into a scratch path before the export stage; called
+    with its place in the output folder, it moves it there (drawn here first when no worker has begun it)."""
+
+    __slots__ = ("picture", "scratch")
+
+    def __init__(self, picture, scratch):
+        self.picture, self.scratch = picture, scratch
+
+    def __call__(self, path):
+        self.picture.result()
+        shutil.move(self.scratch, path)
+
+
+def draw_ahead(extras: Mapping[str, Callable[[Path], None]], workers) -> dict:
+    """extras with every picture (workers.Remote) begun in a worker now, each into a scratch file that write_build
+    moves into place. Begun at the export, the preview was drawn here (~0.7 CPU s at 32 pieces) while a worker drew
+    the steps; begun before the face-gap check, a worker draws both while this process checks, and this process's
+    export is left with the files (1.45 -> 0.64 CPU s). Without workers, extras as they are."""
+    if workers is None:
+        return dict(extras)
+    out = {}
+    for k, (rel, writer) in enumerate(sorted(extras.items())):
+        if isinstance(writer, Remote):
+            scratch = workers.scratch(f"picture-{k}-{Path(rel).name}")
+            writer = _DrawnAhead(workers.prefetch(writer, scratch), scratch)
+        out[rel] = writer
+    return out
+
+
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
                 dowels: Sequence = (), colors: np.ndarray | None = None,
                 extras: Mapping[str, Callable[[Path], None]] | None = None,
