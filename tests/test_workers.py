@@ -345,3 +345,15 @@ def test_pictures_drawn_ahead_are_moved_into_the_folder(pool, tmp_path):
     assert (out / "a.txt").read_text(encoding="utf-8").split()[0] == "first"
     assert (out / "steps" / "s.txt").read_text(encoding="utf-8").split()[0] == "second"
     assert not [n for n in os.listdir(os.path.dirname(pool.scratch("x"))) if n.startswith("picture-")]  # moved
+
+
+def test_the_puzzle_3mf_is_the_same_file_whether_a_worker_writes_it(pool, tmp_path):
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.export import write_build
+
+    pieces = make_pieces(n=3)
+    here = write_build(tmp_path / "here", pieces, make_report(pieces))
+    there = write_build(tmp_path / "there", pieces, make_report(pieces), workers=pool)
+    assert (there / "puzzle.3mf").read_bytes() == (here / "puzzle.3mf").read_bytes()
+    assert sorted(p.name for p in there.iterdir()) == sorted(p.name for p in here.iterdir())
