@@ -323,37 +323,3 @@ def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, wor
     assert where[0] and (where[1] or not worker_busy)
     if busy is not None:
         assert busy.result() == 1.0
-
-
-def _write_folder(path, text):
-    os.makedirs(path)
-    with open(os.path.join(path, "s.txt"), "w", encoding="utf-8") as f:
-        f.write(f"{text} {os.getpid()}")
-
-
-def test_pictures_drawn_ahead_are_moved_into_the_folder(pool, tmp_path):
-    from test_export import make_pieces, make_report
-
-    from volpuzzle.export import draw_ahead, write_build
-
-    pieces = make_pieces()
-    extras = {"a.txt": W.Remote(_write_picture, "first", 0.0), "steps": W.Remote(_write_folder, "second")}
-    assert draw_ahead(extras, None) == extras  # no workers: drawn by write_build as before
-    ahead = draw_ahead(extras, pool)
-    assert not any(isinstance(w, W.Remote) for w in ahead.values())
-    out = write_build(tmp_path / "c", pieces, make_report(pieces), extras=ahead, workers=pool)
-    assert (out / "a.txt").read_text(encoding="utf-8").split()[0] == "first"
-    assert (out / "steps" / "s.txt").read_text(encoding="utf-8").split()[0] == "second"
-    assert not [n for n in os.listdir(os.path.dirname(pool.scratch("x"))) if n.startswith("picture-")]  # moved
-
-
-def test_the_puzzle_3mf_is_the_same_file_whether_a_worker_writes_it(pool, tmp_path):
-    from test_export import make_pieces, make_report
-
-    from volpuzzle.export import write_build
-
-    pieces = make_pieces(n=3)
-    here = write_build(tmp_path / "here", pieces, make_report(pieces))
-    there = write_build(tmp_path / "there", pieces, make_report(pieces), workers=pool)
-    assert (there / "puzzle.3mf").read_bytes() == (here / "puzzle.3mf").read_bytes()
-    assert sorted(p.name for p in there.iterdir()) == sorted(p.name for p in here.iterdir())

@@ -547,36 +547,6 @@ def _free_space_problem(parent: Path, items) -> str | None:
     return None
 
 
-class _DrawnAhead:
-    """A picture (a workers.Remote writer) begun in a worker into a scratch path before the export stage; called
-    with its place in the output folder, it moves it there (drawn here first when no worker has begun it)."""
-
-    __slots__ = ("picture", "scratch")
-
-    def __init__(self, picture, scratch):
-        self.picture, self.scratch = picture, scratch
-
-    def __call__(self, path):
-        self.picture.result()
-        shutil.move(self.scratch, path)
-
-
-def draw_ahead(extras: Mapping[str, Callable[[Path], None]], workers) -> dict:
-    """extras with every picture (workers.Remote) begun in a worker now, each into a scratch file that write_build
-    moves into place. Begun at the export, the preview was drawn here (~0.7 CPU s at 32 pieces) while a worker drew
-    the steps; begun before the face-gap check, a worker draws both while this process checks, and this process's
-    export is left with the files (1.45 -> 0.64 CPU s). Without workers, extras as they are."""
-    if workers is None:
-        return dict(extras)
-    out = {}
-    for k, (rel, writer) in enumerate(sorted(extras.items())):
-        if isinstance(writer, Remote):
-            scratch = workers.scratch(f"picture-{k}-{Path(rel).name}")
-            writer = _DrawnAhead(workers.prefetch(writer, scratch), scratch)
-        out[rel] = writer
-    return out
-
-
 def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force: bool = False,
                 dowels: Sequence = (), colors: np.ndarray | None = None,
                 extras: Mapping[str, Callable[[Path], None]] | None = None,
@@ -657,17 +627,11 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
             ahead.append((tmp / rel, workers.prefetch(extras[rel], tmp / rel)))
         extras = {rel: w for rel, w in (extras or {}).items() if rel not in remote[1:]}
         # the largest file first, so that the worker is busy from the start
-        puzzle = (tmp / "puzzle.3mf",
-                  [(pid, mesh.vertices.view(np.ndarray), mesh.faces.view(np.ndarray), rgb, None)
-                   for (pid, mesh), rgb in zip(items, colors, strict=True)],
-                  "millimeter", [(pin_triangles or {}).get(pid) for pid, _ in items], DEFAULT_ACCENT,
-                  None if triangle_colors is None else [triangle_colors.get(pid) for pid, _ in items])
-        if workers is not None:
-            # a worker process writes it (~0.3 CPU s at 32 pieces; the pictures drawn ahead leave it idle by now)
-            # while the 3MF thread here writes the plates: one lock keeps a process to one 3MF file at a time
-            ahead.insert(0, (puzzle[0], workers.prefetch(write_3mf, *puzzle)))
-        else:
-            write(puzzle[0], write_3mf, *puzzle)
+        write(tmp / "puzzle.3mf", write_3mf, tmp / "puzzle.3mf",
+              [(pid, mesh.vertices, mesh.faces, rgb, None) for (pid, mesh), rgb in zip(items, colors, strict=True)],
+              "millimeter",
+              [(pin_triangles or {}).get(pid) for pid, _ in items], DEFAULT_ACCENT,
+              None if triangle_colors is None else [triangle_colors.get(pid) for pid, _ in items])
         entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
         piece_entries = []
         for (pid, mesh), piece, rgb in zip(items, pieces, colors, strict=True):

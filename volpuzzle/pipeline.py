@@ -166,7 +166,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     """build() once the spec is read and the target free: every stage, then the files -> the report dict."""
     from .assembly import replay_assembly
     from .check import assert_passed, check_printability
-    from .export import draw_ahead, piece_colors, pin_triangles, write_build
+    from .export import piece_colors, pin_triangles, write_build
     from .joint import dowel_parts, require_pieces_joined
     from .layout import check_plate, lay_dowels_flat, plates_and_preview
     from .report import build_report, fit, require_printable
@@ -192,7 +192,6 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     with timer("layout", progress):
         placements, plates, extras = plates_and_preview(spec, s.pieces, dowels, s.joints, colors, pins, texture,
                                                         {**s.poses, **dowel_poses}, assembly.get("steps"))
-    extras = draw_ahead(extras, workers)  # a worker draws the pictures while this process checks
     report = build_report(spec, s, assembly, placements, plates, texture_report, timer.timings)
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,

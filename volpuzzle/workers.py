@@ -261,10 +261,6 @@ class Workers:
         Prefetch.result() gives it, or computes it here when no worker has begun it by then."""
         return Prefetch(self, fn, args)
 
-    def scratch(self, name: str) -> str:
-        """A path in the pool's own folder (removed by close()), for a file a worker writes ahead of its place."""
-        return os.path.join(self._folder(), name)
-
     def _folder(self):
         if self._dir is None:
             self._dir = tempfile.mkdtemp(prefix="volpuzzle-workers-")
