@@ -153,3 +153,21 @@ def test_amplitude_that_folds_via_cli(tmp_path):
     assert_one_line_error(result)
     assert "amplitude" in result.output
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_the_command_leaves_at_once_after_a_build_with_its_output_and_message_whole(tmp_path):
+    # volpuzzle build, as the command, skips the interpreter's teardown (cli._leave_at_once): the message is still
+    # flushed, the exit status 0, and nothing (the pool, its semaphores) reported left behind
+    import subprocess
+    import sys
+
+    from helpers_build import example_spec
+
+    spec = example_spec("twisted-torus", tmp_path, tolerance=0.5)
+    run = subprocess.run([sys.executable, "-m", "volpuzzle.cli", "build", str(spec), "--jobs", "2"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("built 32 pieces"), run.stdout
+    assert "leaked" not in run.stderr and "Traceback" not in run.stderr, run.stderr
+    assert json.loads((tmp_path / "out" / "twisted-torus" / "report.json").read_text())["pieces"]

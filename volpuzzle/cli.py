@@ -89,6 +89,7 @@ def build(spec, output_dir, fmt, seed, jobs, force, allow_large):
     click.echo(f"built {len(report['pieces'])} pieces, {len(report['joints'])} joints in "
                f"{report['timings_s'].get('total', 0):.1f} s -> {report['spec']['output']['directory']} "
                f"(volume error {checks['volume_error']:.3%}, max overlap {checks['max_overlap_mm3']:.3g} mm^3)")
+    _leave_at_once()
 
 
 @cli.command()
@@ -166,7 +167,22 @@ def batch(specs, output_root, jobs, scheduler, force):
         sys.exit(1)
 
 
+_ENTRY = []  # set by main(): this process is the `volpuzzle` command itself, not a caller of `cli` (tests, scripts)
+
+
+def _leave_at_once():
+    """After a finished build, as the command: exit without the interpreter's teardown of the build's heap and
+    libraries (numba, manifold3d, trimesh: 0.5-1.4 s wall measured on a busy 2-core machine, with nothing left to
+    do). The output is in place, the workers ended (pipeline.build closes the pool) and every file closed."""
+    if not _ENTRY:
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
 def main():
+    _ENTRY.append(True)
     cli(prog_name="volpuzzle")
 
 
