@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # the stage modules load trimesh and the geometry engine: onl
     from .load import Model
     from .mapping import Map
     from .tile import Tiling
+    from .workers import Prefetch
 
 __all__ = ["Progress", "Stages", "Timer", "build", "prepare", "validate"]
 
@@ -51,7 +52,7 @@ class Stages:
     tolerance: float = 0.0  # mm, the tessellation tolerance finally used (at most output.tolerance)
     face_clearance: float = 0.0  # mm, the gap between mating cut faces actually applied
     mesh_report: dict | None = None  # mesh mode: meshcut.compose_in_mesh's report
-    sampling: object = None  # workers.Prefetch of compose's Sampling at output.tolerance (begun while joints plan)
+    sampling: Prefetch | None = None  # of compose's Sampling at output.tolerance (begun while joints plan)
 
 
 def prepare(spec, timer=None, progress=None, workers=None):

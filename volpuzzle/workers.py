@@ -270,7 +270,9 @@ class Workers:
         """Shut the pool without waiting: its workers are ended at once. Left to exit on their own, idle workers
         take ~0.6 s to tear down their interpreters, which the CLI would wait for at exit; a worker still starting
         or running a task (an interrupted build) could take far longer. Nothing of theirs is needed any more, and
-        the executor cleans up after workers that ended (its broken-pool path)."""
+        the executor cleans up after workers that ended (its broken-pool path). Before Python 3.14 (which adds
+        terminate_workers) the executor has no public way to end its workers, hence the two private attributes,
+        read defensively."""
         processes = list((getattr(self._executor, "_processes", None) or {}).values())
         manager = getattr(self._executor, "_executor_manager_thread", None)  # shutdown() forgets it
         self._executor.shutdown(wait=False, cancel_futures=True)
