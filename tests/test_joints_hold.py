@@ -82,15 +82,19 @@ def test_tilted_pins_and_holes_never_meet_inside_a_piece():
 def test_cylinders_apart_only_when_a_wall_fits_between_them():
     z = np.array([[0.0, 0.0, 0.0]])
     up = np.array([[0.0, 0.0, 5.0]])
+
+    def apart(q0, q1, gap):
+        return J._Cylinders(z, up, 1.0).apart_all([(q0, q1, 1.0)], gap)[0]
+
     # side by side: axes 3 mm apart, radii 1 + 1, so a wall of 1 fits and 1.2 does not
     q0, q1 = np.array([3.0, 0.0, 0.0]), np.array([3.0, 0.0, 5.0])
-    assert J._apart(z, up, 1.0, q0, q1, 1.0, 1.0)[0] and not J._apart(z, up, 1.0, q0, q1, 1.0, 1.2)[0]
+    assert apart(q0, q1, 1.0) and not apart(q0, q1, 1.2)
     # end to end on one axis: only the gap between the flat ends counts
     q0, q1 = np.array([0.0, 0.0, 6.0]), np.array([0.0, 0.0, 9.0])
-    assert J._apart(z, up, 1.0, q0, q1, 1.0, 0.9)[0] and not J._apart(z, up, 1.0, q0, q1, 1.0, 1.1)[0]
+    assert apart(q0, q1, 0.9) and not apart(q0, q1, 1.1)
     # crossing
     q0, q1 = np.array([-4.0, 0.0, 2.0]), np.array([4.0, 0.0, 2.0])
-    assert not J._apart(z, up, 1.0, q0, q1, 1.0, 0.1)[0]
+    assert not apart(q0, q1, 0.1)
 
 
 def test_welded_without_opt_in_fails_the_build_and_with_it_warns(monkeypatch, capsys):

@@ -487,12 +487,6 @@ def _segments(fd, s, side):
     return fd.x, p1, rho
 
 
-def _apart(p0, p1, rp, q0, q1, rq, gap):
-    """(k,) bool: cylinders of axes p0 -> p1 (k, 3) radius rp and q0 -> q1 (3,) radius rq are at least gap apart:
-    their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the other."""
-    return _Cylinders(p0, p1, rp).apart_all([(q0, q1, rq)], gap)
-
-
 def _size_steps(sizes, r_min, l_min):
     """The sizes a face tries, largest first: the asked one, then radii 15% smaller each down to r_min, the length
     shrinking with the radius down to l_min."""
