@@ -100,15 +100,24 @@ def shifted_overlap(a, b, budget: float):
     |vol(a ∩ (b + t)) - vol(a ∩ b)| <= vol(b Δ (b + t)) <= |t| * area(∂b), so t is chosen to keep that
     bound near budget (and well above the engine's tolerance).
     """
-    shift, area, _ = _shift_of(a, b, budget)
-    return overlap_volume(a, b.translate(tuple(shift * _SHIFT_DIR))), shift * area
+    shift, area = _shift_of(b, budget, _tolerance(a, b))
+    return _moved_overlap(a, b, shift), shift * area
 
 
-def _shift_of(a, b, budget):
-    """(shift mm, area of b mm^2, the engine's tolerance mm) of shifted_overlap."""
+def _tolerance(a, b):
+    """The engine's tolerance (mm) of a Boolean of two manifold3d.Manifolds."""
+    return max(float(a.get_tolerance()), float(b.get_tolerance()), 1e-12)
+
+
+def _shift_of(b, budget, tol):
+    """(shift mm, area of b mm^2) of shifted_overlap, for the engine's tolerance tol (mm)."""
     area = max(float(b.surface_area()), 1e-12)
-    tol = max(float(a.get_tolerance()), float(b.get_tolerance()), 1e-12)
-    return min(max(budget / area, 1e3 * tol), 1e-3), area, tol
+    return min(max(budget / area, 1e3 * tol), 1e-3), area
+
+
+def _moved_overlap(a, b, shift):
+    """vol(a ∩ (b + shift along _SHIFT_DIR)) mm^3."""
+    return overlap_volume(a, b.translate(tuple(shift * _SHIFT_DIR)))
 
 
 def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: int = 1 << 20):
@@ -237,10 +246,8 @@ def _overlaps(shared, pairs):
     out = []
     for a, b in pairs:
         sa, sb = (piece_solid(refs[k][0].mesh, refs[k][1]) for k in (a, b))
-        if exact:
-            shift, area, tol = 0.0, 0.0, max(float(sa.get_tolerance()), float(sb.get_tolerance()), 1e-12)
-        else:
-            shift, area, tol = _shift_of(sa, sb, budget)
+        tol = _tolerance(sa, sb)
+        shift, area = (0.0, 0.0) if exact else _shift_of(sb, budget, tol)
         # Solids whose parts lie apart share nothing, which is what the Boolean finds of them (~half the pairs of a
         # build: neighbours stand a face clearance apart) at a fraction of its cost
         if parts_apart(piece_extents(refs[a][0].mesh), piece_extents(refs[b][0].mesh), shift * _SHIFT_DIR,
@@ -249,7 +256,7 @@ def _overlaps(shared, pairs):
         elif exact:
             out.append((overlap_volume(sa, sb), 0.0))
         else:
-            out.append((overlap_volume(sa, sb.translate(tuple(shift * _SHIFT_DIR))), shift * area))
+            out.append((_moved_overlap(sa, sb, shift), shift * area))
     return out
 
 
