@@ -277,3 +277,49 @@ def test_hull_points_are_trimeshs_hull_vertices():
             assert len(fast) < len(mesh.vertices)  # the test reaches points that are not on the hull
         np.testing.assert_array_equal(fast, trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
                                       .convex_hull.vertices)
+
+
+def test_step_pictures_move_a_finished_block_whole_and_leave_no_copy_of_it_in_place(tmp_path):
+    """A sub-assembly (c and d) joined onto another (a and b) is drawn back in its colours once: not also in place,
+    where its pieces were drawn in the steps that assembled it (the pictures reuse those steps' depth buffers)."""
+    from volpuzzle.preview import render_steps
+
+    boxes = [trimesh.creation.box([10, 10, 10]).apply_translation([10 * i, 0, 0]) for i in range(4)]
+    colors = np.array([[220, 40, 40], [40, 200, 40], [40, 40, 220], [200, 40, 200]], np.uint8)
+    down = [0.0, 0.0, -1.0]
+    steps = [{"kind": "place", "piece": "a", "pieces": ["a"], "direction": None},
+             {"kind": "join", "piece": "b", "pieces": ["b"], "direction": down},
+             {"kind": "place", "piece": "c", "pieces": ["c"], "direction": None},
+             {"kind": "join", "piece": "d", "pieces": ["d"], "direction": down},
+             {"kind": "join", "piece": None, "pieces": ["c", "d"], "direction": down}]
+    files = render_steps(tmp_path, boxes, ["a", "b", "c", "d"], colors, steps)
+    pics = [np.asarray(Image.open(tmp_path / f).convert("RGB")).astype(int)[25:] for f in files]
+
+    def blue(px):  # c's colour
+        return ((px[..., 2] > px[..., 0] + 60) & (px[..., 2] > px[..., 1] + 60)).sum()
+
+    def grey(px):
+        return ((np.ptp(px, axis=2) < 4) & (px[..., 0] > 60) & (px[..., 0] < 250)).sum()
+
+    assert blue(pics[2]) > 300  # c placed alone, in its colour
+    assert blue(pics[4]) < 1.3 * blue(pics[2])  # c drawn once when its block moves, not also where it was placed
+    assert abs(grey(pics[4]) - grey(pics[2])) < 0.1 * grey(pics[2])  # only a and b in place, as before c came
+    # one frame for every step, so that they line up: a and b in place show at the same pixels in steps 3 and 5,
+    # wherever neither picture draws a block over them
+    from scipy.ndimage import binary_dilation
+
+    def drawn_over(px):  # a block, its outline or the arrow, and a margin
+        return binary_dilation((np.ptp(px, axis=2) >= 60) | (px.max(axis=2) < 60), iterations=3)
+
+    free = ~drawn_over(pics[2]) & ~drawn_over(pics[4])
+    is_grey = [(np.ptp(px, axis=2) < 4) & (px[..., 0] > 60) & (px[..., 0] < 250) for px in (pics[2], pics[4])]
+    assert is_grey[0].sum() > 300 and np.array_equal(is_grey[0] & free, is_grey[1] & free)
+
+
+def test_step_bases_start_a_moved_block_from_the_pieces_in_place_before_it_was_begun():
+    from volpuzzle.preview import _step_bases
+
+    assert _step_bases([[0], [1], [2], [3], [2, 3], [0, 1, 2, 3]]) == [-1, -1, -1, -1, 2, 0]
+    assert _step_bases([[0], [1], [0, 2]]) == [-1, -1, -2]  # 1 was placed after 0 and stays: drawn again
+    assert _step_bases([[0, 1], [2], [0, 1]]) == [-1, -1, -2]
+    assert _step_bases([]) == []

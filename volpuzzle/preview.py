@@ -113,14 +113,39 @@ def _depth_buffer(sx, sy, sz, part, shift, show, frame, zrange, w, h):
     part (t,), each part moved by shift (parts, 3) on the screen and drawn where show (parts,) is set; frame
     (cx, cy, scale) puts x at cx + x * scale pixels and y at cy - y * scale; zrange (lo, hi) bounds the depths of
     the drawn triangles. -> (h, w) triangle index, -1 where none."""
-    keys = np.full(int(w) * int(h), -1, dtype=np.int64)
-    bits = max(1, int(len(sx) - 1).bit_length())
-    if len(sx):
-        zlo, zhi = float(zrange[0]), float(zrange[1])
-        zscale = (2.0 ** (62 - bits) - 1) / max(zhi - zlo, 1e-12)
-        _scan(sx, sy, sz, part, np.ascontiguousarray(shift, dtype=float), show, float(frame[0]), float(frame[1]),
-              float(frame[2]), int(w), int(h), zlo, zscale, bits, keys)
-    return np.where(keys >= 0, keys & ((1 << bits) - 1), -1).reshape(int(h), int(w))
+    buffer = _DepthKeys(sx, sy, sz, part, frame, zrange, w, h)
+    keys = buffer.empty()
+    buffer.draw(keys, show, shift)
+    return buffer.triangles(keys)
+
+
+class _DepthKeys:
+    """A depth buffer of triangles sx, sy, sz (t, 3) on the screen, of parts part (t,), in one frame (cx, cy, scale)
+    and depth range zrange (lo, hi), w x h pixels. Its keys (w * h,) int64 hold per pixel the depth (quantised to
+    2^-(62 - b) of the range) and the index (b bits) of the nearest triangle drawn so far, -1 where none: drawing
+    more triangles into keys never needs the earlier ones again."""
+
+    def __init__(self, sx, sy, sz, part, frame, zrange, w, h):
+        self.sx, self.sy, self.sz, self.part = sx, sy, sz, part
+        self.frame, self.w, self.h = tuple(float(x) for x in frame), int(w), int(h)
+        self.bits = max(1, int(len(sx) - 1).bit_length())
+        self.zlo = float(zrange[0])
+        self.zscale = (2.0 ** (62 - self.bits) - 1) / max(float(zrange[1]) - self.zlo, 1e-12)
+
+    def empty(self):
+        return np.full(self.w * self.h, -1, dtype=np.int64)
+
+    def draw(self, keys, show, shift):
+        """The triangles of the parts where show (parts,) is set, moved by shift (parts, 3), into keys."""
+        if len(self.sx) and np.any(show):
+            cx, cy, scale = self.frame
+            _scan(self.sx, self.sy, self.sz, self.part, np.ascontiguousarray(shift, dtype=float),
+                  np.ascontiguousarray(show, dtype=np.bool_), cx, cy, scale, self.w, self.h, self.zlo, self.zscale,
+                  self.bits, keys)
+
+    def triangles(self, keys):
+        """(h, w) index of the nearest triangle at each pixel centre, -1 where none."""
+        return np.where(keys >= 0, keys & ((1 << self.bits) - 1), -1).reshape(self.h, self.w)
 
 
 @njit(cache=True, nogil=True)
@@ -323,8 +348,9 @@ _STEP_TRIANGLES = 200_000  # below this in all, step pictures draw the pieces as
 def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     """One small PNG per assembly step, directory/step-NN.png: the pieces placed so far in light grey, the block
     added in this step in its colours, drawn back against its direction with an arrow to where it goes. Every
-    picture is framed on the whole puzzle, so the steps line up. meshes: Trimesh in mm; names: their piece ids;
-    colors (n, 3) uint8; steps: report.json assembly steps. -> list of file names, one per step."""
+    picture has one frame, on the whole puzzle and each block drawn back, so the steps line up. meshes: Trimesh in
+    mm; names: their piece ids; colors (n, 3) uint8; steps: report.json assembly steps. -> list of file names, one
+    per step."""
     from pathlib import Path
 
     from PIL import Image, ImageDraw
@@ -352,50 +378,98 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     np.minimum.at(near, owner, sz.min(axis=1))
     np.maximum.at(far, owner, sz.max(axis=1))
     centres = np.array([v.mean(axis=0) for v, _ in parts])  # each piece's, for the arrows
-    every_x, every_y = every @ right, every @ up
-    # a step's frame spans the puzzle and the puzzle moved by the block's way back: the extremes of a moved copy
-    # are the moved extremes (rounding is monotonic), so no step looks at every vertex again
-    ex, ey = (every_x.min(), every_x.max()), (every_y.min(), every_y.max())
-    files, placed = [], np.zeros(len(parts), np.bool_)
-    for n, step in enumerate(steps, start=1):
+    moves = []  # per step: the pieces of its block, its direction, and the way back on the screen
+    for step in steps:
         moving = [where[p] for p in (step.get("pieces") or [step.get("piece")]) if p in where]
         d = step.get("direction")
         back = -reach * np.asarray(d, float) if d is not None else np.zeros(3)
-        back_screen = back @ axes
-        shown = placed.copy()
-        shown[moving] = True
-        shift = np.zeros((len(parts), 3))
-        shift[moving] = back_screen
+        moves.append((moving, d, back, back @ axes))
+    # One frame and one depth range for every step, spanning the puzzle and each block drawn back: the steps line up
+    # exactly, and the pieces in place are drawn once into a depth buffer that every later step starts from (a step
+    # then draws only its own block: at 256 pieces, 383 pictures each of all ~100k triangles were 5 CPU s). The
+    # extremes of a moved copy are the moved extremes (rounding is monotonic), so no step looks at every vertex.
+    every_x, every_y = every @ right, every @ up
+    ex, ey = (every_x.min(), every_x.max()), (every_y.min(), every_y.max())
+    backs = np.array([b for _, _, _, b in moves] or [np.zeros(3)])
+    bx, by = backs[:, 0], backs[:, 1]
+    lo = np.array([min(ex[0], ex[0] + bx.min()), min(ey[0], ey[0] + by.min())])
+    span = np.maximum(np.array([max(ex[1], ex[1] + bx.max()), max(ey[1], ey[1] + by.max())]) - lo, 1e-9)
+    scale = min((w * k * 0.9) / span[0], (h * k * 0.82) / span[1])
+    frame = (w * k / 2 - (lo[0] + span[0] / 2) * scale, h * k * 0.54 + (lo[1] + span[1] / 2) * scale, scale)
+    drawn = np.isfinite(near)  # pieces with a triangle facing the eye
+    lows, highs = [near[drawn]], [far[drawn]]
+    for moving, _, _, b in moves:
+        shown = [p for p in moving if drawn[p]]
+        lows.append(near[shown] + b[2]), highs.append(far[shown] + b[2])
+    zlo, zhi = float(np.concatenate(lows).min(initial=0.0)), float(np.concatenate(highs).max(initial=1.0))
+    buffer = _DepthKeys(sx, sy, sz, owner, frame, (zlo, zhi), w * k, h * k)
+    placed = buffer.empty()  # the pieces in place so far
+    in_place = np.zeros(len(parts), np.bool_)
+    none = np.zeros((len(parts), 3))
+    bases = _step_bases([m for m, _, _, _ in moves])
+    last_use = {b: n for n, b in enumerate(bases) if b >= 0}
+    saved = {}  # step -> the keys of the pieces in place before it, while a later step still starts from them
+
+    def to_px(p):
+        return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
+                h * k * 0.54 - (p @ up - (lo[1] + span[1] / 2)) * scale)
+
+    files = []
+    for n, (moving, d, back, back_screen) in enumerate(moves):
+        if n in last_use:
+            saved[n] = placed.copy()
+        img = np.full((h * k, w * k, 3), 255, np.uint8)
         which = np.zeros(len(parts), np.int64)  # grey for the pieces in place, their own colours for the block
         which[moving] = 1
-        # frame: the whole puzzle and the block drawn back, the same scale for every step
-        bx, by = back_screen[0], back_screen[1]
-        lo = np.array([min(ex[0], ex[0] + bx), min(ey[0], ey[0] + by)])
-        span = np.maximum(np.array([max(ex[1], ex[1] + bx), max(ey[1], ey[1] + by)]) - lo, 1e-9)
-        scale = min((w * k * 0.9) / span[0], (h * k * 0.82) / span[1])
-        img = np.full((h * k, w * k, 3), 255, np.uint8)
-        zr = ((near + shift[:, 2])[shown].min(initial=np.inf), (far + shift[:, 2])[shown].max(initial=-np.inf))
-        if zr[0] <= zr[1]:
-            frame = (w * k / 2 - (lo[0] + span[0] / 2) * scale, h * k * 0.54 + (lo[1] + span[1] / 2) * scale, scale)
-            ibuf = _depth_buffer(sx, sy, sz, owner, shift, shown, frame, zr, w * k, h * k)
-            _shade(ibuf, cols, which, owner, _OUTLINE, img, 0, 0)
+        show = np.zeros(len(parts), np.bool_)
+        show[moving] = True
+        shift = np.zeros((len(parts), 3))
+        shift[moving] = back_screen
+        base = bases[n]
+        if base == -1:  # the block is new: every piece in place stays
+            keys = placed.copy()
+        elif base >= 0:
+            keys = saved.pop(base) if last_use[base] == n else saved[base].copy()
+        else:
+            keys = buffer.empty()
+            buffer.draw(keys, in_place & ~show, none)
+        buffer.draw(keys, show, shift)
+        _shade(buffer.triangles(keys), cols, which, owner, _OUTLINE, img, 0, 0)
         pil = Image.fromarray(img)
         draw = ImageDraw.Draw(pil)
         if moving and d is not None:
             centre = centres[moving].mean(axis=0)
-
-            def to_px(p, lo=lo, span=span, scale=scale):
-                return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
-                        h * k * 0.54 - (p @ up - (lo[1] + span[1] / 2)) * scale)
-
             a, b = np.array(to_px(centre + back)), np.array(to_px(centre + 0.25 * back))
             _arrow(draw, a, b, width=3 * k)
-        _text(draw, w * k / 2, 4 * k, f"step {n}", 14 * k)
-        name = f"step-{n:02d}.png"
+        _text(draw, w * k / 2, 4 * k, f"step {n + 1}", 14 * k)
+        name = f"step-{n + 1:02d}.png"
         pil.reduce(k).save(directory / name, format="PNG", compress_level=1)
         files.append(name)
-        placed[moving] = True
+        buffer.draw(placed, show, none)
+        in_place[moving] = True
     return files
+
+
+def _step_bases(blocks):
+    """Where each step picture finds the pieces in place without its own block: blocks [[part index]] moved at each
+    step -> per step -1 when none of its block is in place yet (the pieces in place, as they are), s >= 0 when the
+    block's pieces in place were all placed from step s on and nothing else was since (the pieces in place before
+    step s), -2 otherwise (drawn again). A plan assembles a block, then moves it whole: its pieces were the last
+    placed, so the pieces in place without it are those of an earlier step."""
+    first = {}  # part -> the step that placed it
+    new_at = []  # per step, the parts it placed
+    out = []
+    for n, block in enumerate(blocks):
+        mine = set(block)
+        old = [p for p in block if p in first]
+        if not old:
+            out.append(-1)
+        else:
+            s = min(first[p] for p in old)
+            out.append(s if all(p in mine for k in range(s, n) for p in new_at[k]) else -2)
+        new_at.append([p for p in dict.fromkeys(block) if p not in first])
+        first.update((p, n) for p in new_at[-1])
+    return out
 
 
 def _arrow(draw, a, b, width):
