@@ -410,9 +410,8 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     last_use = {b: n for n, b in enumerate(bases) if b >= 0}
     saved = {}  # step -> the keys of the pieces in place before it, while a later step still starts from them
 
-    def to_px(p):
-        return (w * k / 2 + (p @ right - (lo[0] + span[0] / 2)) * scale,
-                h * k * 0.54 - (p @ up - (lo[1] + span[1] / 2)) * scale)
+    def to_px(p):  # a point's pixel in the frame, as _scan places the corners
+        return frame[0] + (p @ right) * scale, frame[1] - (p @ up) * scale
 
     files = []
     for n, (moving, d, back, back_screen) in enumerate(moves):
