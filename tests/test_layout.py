@@ -322,3 +322,22 @@ def test_step_bases_start_a_moved_block_from_the_pieces_in_place_before_it_was_b
     assert _step_bases([[0], [1], [0, 2]]) == [-1, -1, -2]  # 1 was placed after 0 and stays: drawn again
     assert _step_bases([[0, 1], [2], [0, 1]]) == [-1, -1, -2]
     assert _step_bases([]) == []
+
+
+def test_a_simplified_piece_looks_up_its_original_triangles_only_for_a_texture(monkeypatch):
+    from volpuzzle import preview
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)  # 5120 triangles, simplified to about 500
+    calls = []
+    real = preview._nearest
+    monkeypatch.setattr(preview, "_nearest", lambda m, f: calls.append(f) or real(m, f))
+    v, f, rgb = preview._part(sphere, (200, 30, 30), 500)
+    assert len(f) < len(sphere.faces) and rgb.shape == (3,) and not calls  # one colour: no look-up
+    colours = np.zeros((len(sphere.faces), 3), np.uint8)
+    colours[sphere.triangles_center[:, 2] > 0] = (255, 255, 255)  # white north, black south
+    v, f, rgb = preview._part(sphere, colours, 500)
+    assert calls == [500] and rgb.shape == (len(f), 3)
+    north = v[f].mean(axis=1)[:, 2] > 0.1
+    south = v[f].mean(axis=1)[:, 2] < -0.1
+    assert (rgb[north] == 255).all() and (rgb[south] == 0).all()
+    assert preview._nearest(sphere, 5120) is None  # drawn as it is: colours stay as given

@@ -22,33 +22,44 @@ _PREVIEW_TRIANGLES = 600_000  # below this in all, the preview draws the pieces 
 
 
 def _simplified(mesh, faces=1500):
-    """(vertices (n, 3), faces (m, 3), nearest original triangle (m,) or None) of a mesh simplified to about `faces`
-    triangles; None when the mesh is drawn as it is. Remembered per mesh: the preview and the step pictures ask
-    for the same pieces."""
+    """(vertices (n, 3), faces (m, 3)) of a mesh simplified to about `faces` triangles, or the mesh's own when it has
+    no more. Remembered per mesh: the preview and the step pictures ask for the same pieces."""
     from .geometry import memo
 
     return memo(mesh, ("preview", int(faces)), lambda: _simplify(mesh, faces))
 
 
+def _nearest(mesh, faces):
+    """(m,) index of the original triangle nearest each triangle of _simplified(mesh, faces), or None when the mesh
+    is drawn as it is. Only per-triangle colours (a texture) need it, so it has a memo of its own."""
+    from .geometry import memo
+
+    def make():
+        v, f = _simplified(mesh, faces)
+        v0, f0 = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+        if len(f) == 0 or (len(f) == len(f0) and np.array_equal(f, f0)):  # drawn as it is
+            return None
+        from scipy.spatial import cKDTree
+
+        return cKDTree(v0[f0].mean(axis=1)).query(v[f].mean(axis=1))[1]
+
+    return memo(mesh, ("preview-nearest", int(faces)), make)
+
+
 def _simplify(mesh, faces):
     v0, f0 = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     if len(f0) <= faces:
-        return v0, f0, None
+        return v0, f0
     try:
         import fast_simplification
 
         v, f = fast_simplification.simplify(v0.astype(np.float32), f0.astype(np.int32),
                                             target_reduction=1.0 - faces / len(f0))
-        v, f = np.asarray(v, float), np.asarray(f)
         if len(f):
-            from scipy.spatial import cKDTree
-
-            # per-triangle colours follow the nearest original triangle
-            _, near = cKDTree(v0[f0].mean(axis=1)).query(v[f].mean(axis=1))
-            return v, f, near
+            return np.asarray(v, float), np.asarray(f)
     except Exception:  # noqa: BLE001 - a preview falls back to the full mesh rather than failing the build
         pass
-    return v0, f0, None
+    return v0, f0
 
 
 def _face_cap(meshes, budget, least):
@@ -334,8 +345,9 @@ def _part(mesh, rgb, faces):
     """(vertices, faces, colours) of a mesh ready to draw, with at most about `faces` triangles: one (3,) colour or
     (m, 3) per triangle."""
     rgb = np.asarray(rgb)
-    v, f, near = _simplified(mesh, faces)
+    v, f = _simplified(mesh, faces)
     if rgb.ndim == 2 and len(rgb) == len(mesh.faces):
+        near = _nearest(mesh, faces)
         return v, f, (rgb if near is None else rgb[near])
     return v, f, rgb.reshape(3)
 
@@ -359,7 +371,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     directory.mkdir(parents=True, exist_ok=True)
     where = {n: i for i, n in enumerate(names)}
     cap = _face_cap(meshes, _STEP_TRIANGLES, _STEP_FACES)
-    parts = [_simplified(m, cap)[:2] for m in meshes]
+    parts = [_simplified(m, cap) for m in meshes]
     right, up, eye = _view_axes()
     every = np.concatenate([v for v, _ in parts])
     reach = 0.6 * float(np.median([np.linalg.norm(np.ptp(v, axis=0)) for v, _ in parts]))
