@@ -127,3 +127,15 @@ def test_cylinder_lies_along_its_direction_between_start_and_stop():
     assert np.allclose([t.min(), t.max()], [-2.0, 4.0]) and np.allclose(radial.max(), 1.5)
     polygon = 0.5 * 64 * np.sin(2 * np.pi / 64) * 1.5**2  # the inscribed 64-gon's area
     assert np.isclose(mesh.volume, 6.0 * polygon)
+
+
+def test_forget_lets_go_of_the_solids_and_the_derived_arrays_of_a_mesh():
+    mesh, other = _cube_mesh(), _cube_mesh().apply_translation([5.0, 0.0, 0.0])
+    for m in (mesh, other):
+        G.memo(m, "solid", lambda m=m: G.from_trimesh(m, "p"))
+        assert m.triangles_center.shape == (12, 3)
+    G.forget([mesh])
+    assert id(mesh) not in G._MEMO and "triangles" not in mesh._cache and "triangles_center" not in mesh._cache
+    # only the meshes named: the other keeps its solid and its arrays, and a forgotten mesh can be judged again
+    assert "solid" in G._MEMO[id(other)][2] and "triangles_center" in other._cache
+    assert G.memo(mesh, "solid", lambda: G.from_trimesh(mesh, "p")).volume() == pytest.approx(8.0)

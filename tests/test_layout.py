@@ -174,7 +174,10 @@ def test_pin_triangles_cover_the_pin_and_nothing_else():
     piece = Piece("p0-0-0", (0, 0, 0), mesh, float(mesh.volume), float(mesh.volume), len(mesh.faces))
     joint = SimpleNamespace(style="pin", shape="cylinder", pin_cell=(0, 0, 0), center=np.array([10.0, 10.0, 20.0]),
                             direction=np.array([0.0, 0.0, 1.0]), radius=r, length=length)
+    mesh._cache.clear()
     flags = pin_triangles([piece], [joint])["p0-0-0"]
+    # the look-up leaves no (m, 3, 3) triangles cached on the piece, which the export would carry for every piece
+    assert "triangles" not in mesh._cache and "triangles_center" not in mesh._cache
     area = mesh.area_faces[flags.astype(bool)].sum()
     assert area == pytest.approx(2 * np.pi * r * length + np.pi * r * r, rel=0.02)  # side and tip, not the cube
     assert pin_triangles([piece], [SimpleNamespace(**{**vars(joint), "pin_cell": (1, 0, 0)})]) == {}

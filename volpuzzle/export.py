@@ -373,8 +373,10 @@ def _write_piece(path: Path, name: str, mesh: trimesh.Trimesh, fmt: str, rgb, pi
     if fmt == "stl":
         import trimesh
 
-        # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes.
-        path.write_bytes(trimesh.exchange.stl.export_stl(mesh))
+        # trimesh's binary STL has an all-zero header (no timestamp): same mesh -> same bytes. Written from a
+        # throw-away mesh of the same arrays, so that the triangles and normals the STL needs are not left cached
+        # on every piece at once (0.1 KB a triangle: 220 MB at 1024 pieces)
+        path.write_bytes(trimesh.exchange.stl.export_stl(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)))
     else:
         write_3mf(path, [(name, mesh.vertices, mesh.faces, rgb, None)], materials=[pins],
                   colors=None if tex is None else [tex])
@@ -784,7 +786,8 @@ def pin_triangles(pieces, joints):
         mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
         if not mine:
             continue
-        c = p.mesh.triangles_center
+        # not mesh.triangles_center: that would keep (m, 3, 3) triangles cached on every piece to the end
+        c = np.asarray(p.mesh.vertices).view(np.ndarray)[p.mesh.faces].mean(axis=1)
         flag = np.zeros(len(c), np.uint8)
         for j in mine:
             d = np.asarray(j.direction, float)

@@ -4,6 +4,8 @@ manifold3d reports failure through `status()` instead of raising, and an empty r
 operation; every helper here checks both and raises GeometryError naming the piece (`what`).
 """
 
+import ctypes
+import ctypes.util
 import weakref
 
 import manifold3d
@@ -37,6 +39,30 @@ def memo(mesh, what, make):
     if what not in entry[2]:
         entry[2][what] = make()
     return entry[2][what]
+
+
+def forget(meshes):
+    """Let go of everything derived from these meshes: what memo holds for them (their engine solids, above all)
+    and trimesh's own cache of derived arrays (triangles, centres, normals). For meshes that are only written from
+    here on: at 1024 pieces that is hundreds of MB the export would otherwise allocate on top of."""
+    for mesh in meshes:
+        _MEMO.pop(id(mesh), None)
+        if isinstance(mesh, trimesh.Trimesh):
+            mesh._cache.clear()  # trimesh has no public call for this; its own methods clear the cache this way
+    _return_freed_memory()
+
+
+def _return_freed_memory():
+    """Hand memory that is free again back to the system, where the C library can (glibc's malloc_trim).
+
+    The engine's solids are built on its worker threads, in their own malloc arenas; once they are freed that memory
+    is not reused by numpy on the main thread, and without a trim the export allocates on top of it (1024 pieces:
+    peak 2.07 GB without, 1.72 GB with)."""
+    name = ctypes.util.find_library("c")
+    try:
+        ctypes.CDLL(name).malloc_trim(0)
+    except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl): nothing to hand back this way
+        pass
 
 
 _OPS = {"union": lambda a, b: a + b, "difference": lambda a, b: a - b, "intersection": lambda a, b: a ^ b}

@@ -168,6 +168,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     from .assembly import replay_assembly
     from .check import assert_passed, check_printability
     from .export import piece_colors, pin_triangles, write_build
+    from .geometry import forget
     from .joint import dowel_parts, require_pieces_joined
     from .layout import check_plate, lay_dowels_flat, plates_and_preview
     from .report import build_report, fit, require_printable
@@ -200,6 +201,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
         report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces},
                                                                workers=workers)
     require_printable(spec, report)
+    forget(p.mesh for p in s.pieces)  # from here on the pieces are only written and drawn
     with timer("export", progress):
         report["timings_s"] = timer.timings
         write_build(target, s.pieces, report, fmt=spec.output.format, force=force, dowels=dowels, colors=colors,
