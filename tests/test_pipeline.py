@@ -109,3 +109,21 @@ def test_a_seed_without_randomize_is_said_to_change_nothing(tmp_path, capsys):
     with pytest.raises(ExportError):
         volpuzzle.build(spec, seed=3, jobs=1)
     assert "warning: --seed 3 changes nothing: the spec does not randomize" in capsys.readouterr().err
+
+
+def test_a_finishing_stage_lets_go_of_the_solids_of_the_meshes_it_replaced():
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from volpuzzle import geometry
+    from volpuzzle.pipeline import _replaced
+
+    kept, replaced, new = (trimesh.creation.box() for _ in range(3))
+    for m in (kept, replaced):
+        geometry.solid_of(m, "piece")
+    old = [SimpleNamespace(mesh=kept), SimpleNamespace(mesh=replaced)]
+    pieces, extra = _replaced(old, [SimpleNamespace(mesh=kept), SimpleNamespace(mesh=new)], 7.5)
+    assert [p.mesh for p in pieces] == [kept, new] and extra == 7.5
+    # the unchanged piece keeps its solid (later stages reuse it); the replaced one holds nothing any more
+    assert id(replaced) not in geometry._MEMO and "solid_keep_faces" in geometry._MEMO[id(kept)][2]

@@ -286,15 +286,16 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
     labels, engraved = {}, 0.0
     if spec.output.labels:
         with timer("label", progress):
-            pieces, labels, engraved = label_pieces(s.tiling, s.fmap, pieces, s.joints, poses, workers=workers)
+            pieces, labels, engraved = _replaced(pieces, *label_pieces(s.tiling, s.fmap, pieces, s.joints, poses,
+                                                                       workers=workers))
     with timer("layout", progress):
-        pieces, cut = base_cuts(pieces, poses, workers=workers)
+        pieces, cut = _replaced(pieces, *base_cuts(pieces, poses, workers=workers))
     if spec.output.labels:
         with timer("label", progress):
-            pieces, more = bed_labels(pieces, labels, poses)
+            pieces, more = _replaced(pieces, *bed_labels(pieces, labels, poses))
         engraved += more
     with timer("check", progress):
-        pieces = printable(pieces, workers=workers)
+        pieces = _replaced(pieces, printable(pieces, workers=workers))[0]
         checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
         # every pin in its hole on the pieces as written, as `volpuzzle check` judges them: a label, a base cut or
         # the float32 rounding after the joints were cut must not pass here and fail there
@@ -304,6 +305,17 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
         checks["passed"] = checks["passed"] and not joint_failures
     checks["base_cuts_mm3"] = round(cut, 3)
     return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks)
+
+
+def _replaced(old, new, *rest):
+    """(new, *rest), once the solids and cached arrays of the meshes in `old` that `new` no longer has are let go
+    (geometry.forget): each finishing stage replaces the pieces, and at 1024 pieces every generation's solids
+    held to the end would be 0.5 GB."""
+    from .geometry import forget
+
+    keep = {id(p.mesh) for p in new}
+    forget(p.mesh for p in old if id(p.mesh) not in keep)
+    return (new, *rest)
 
 
 def validate(spec_path, allow_large=False):
