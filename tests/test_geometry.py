@@ -139,3 +139,17 @@ def test_forget_lets_go_of_the_solids_and_the_derived_arrays_of_a_mesh():
     # only the meshes named: the other keeps its solid and its arrays, and a forgotten mesh can be judged again
     assert "solid" in G._MEMO[id(other)][2] and "triangles_center" in other._cache
     assert G.memo(mesh, "solid", lambda: G.from_trimesh(mesh, "p")).volume() == pytest.approx(8.0)
+
+
+def test_freed_memory_goes_back_through_glibc_and_elsewhere_nothing_is_tried(monkeypatch):
+    import platform
+
+    G._malloc_trim.cache_clear()
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert G._malloc_trim() is not None
+    monkeypatch.setattr(G.sys, "platform", "darwin")
+    G._malloc_trim.cache_clear()
+    assert G._malloc_trim() is None
+    G._return_freed_memory()  # a no-op there, not an error
+    monkeypatch.undo()
+    G._malloc_trim.cache_clear()
