@@ -44,8 +44,9 @@ def memo(mesh, what, make):
 
 def forget(meshes):
     """Let go of everything derived from these meshes: what memo holds for them (their engine solids, above all)
-    and trimesh's own cache of derived arrays (triangles, centres, normals). For meshes that are only written from
-    here on: at 1024 pieces that is hundreds of MB the export would otherwise allocate on top of."""
+    and trimesh's own cache of derived arrays (triangles, centres, normals). For meshes a later stage has replaced
+    or will only write: at 1024 pieces that is hundreds of MB the next stages would otherwise allocate on top of. A
+    mesh used again afterwards is only measured again, never judged on stale results."""
     for mesh in meshes:
         _MEMO.pop(id(mesh), None)
         if isinstance(mesh, trimesh.Trimesh):
