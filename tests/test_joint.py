@@ -404,3 +404,28 @@ def test_the_plan_cuts_a_curved_wall_so_that_every_face_holds_a_pin_along_its_sp
             if role == "hole":
                 deep = s.trim_by_plane(j.direction, float(np.dot(j.direction, j.center)) + j.base_depth)
                 assert _vol(deep - body) < 1e-4 * _vol(deep), (idx, j.axis)
+
+
+@pytest.mark.parametrize("shape, grid, periodic", [("cone", (4, 4, 1), ()), ("cone", (3, 2, 2), ()),
+                                                   ("ring", (2, 2, 8), (2,))])
+def test_split_directions_per_face_are_those_of_every_face_tested_at_every_split(shape, grid, periodic):
+    # _split_dirs looks only at the faces of the smaller side's cells; the plain scan of every face at every split
+    # (n^2) must give the same faces, in the same order, with the same directions
+    from volpuzzle import assembly as A
+
+    vol = half_cone() if shape == "cone" else ring(twist=np.pi / 2)
+    t = _tiling(vol, grid, periodic)
+    fmap = _map(vol)
+    plan = A.plan_assembly(t, fmap)
+    expected = {}
+    for (d, _), step in zip(A.split_directions(t, fmap, plan), plan.steps, strict=True):
+        if not np.any(d):
+            continue
+        mv, fx = set(step.moving), set(step.fixed)
+        for n, f in enumerate(t.faces):
+            lo, up = tuple(f.lower), tuple(f.upper)
+            if (lo in mv and up in fx) or (lo in fx and up in mv):
+                expected[n] = d if up in mv else -d
+    got = J._split_dirs(t, fmap, plan)
+    assert list(got) == list(expected) and len(got) == len(t.faces)
+    assert all(np.array_equal(got[n], expected[n]) for n in expected)

@@ -524,7 +524,11 @@ def _split_dirs(tiling, fmap, plan):
         if not np.any(d):
             continue
         mv, fx = set(step.moving), set(step.fixed)
-        for n, f in enumerate(tiling.faces):
+        # a parted face has a cell on either side, so the faces of the smaller side's cells hold them all: a scan of
+        # every face for every split grew as n^2 (1.3 s of Python at 1024 pieces); ascending, as that scan went
+        numbers = sorted({n for c in min(mv, fx, key=len) for n in tiling.face_numbers(c)})
+        for n in numbers:
+            f = tiling.faces[n]
             lo, up = tuple(f.lower), tuple(f.upper)
             if (lo in mv and up in fx) or (lo in fx and up in mv):
                 out[n] = d if up in mv else -d

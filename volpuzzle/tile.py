@@ -62,12 +62,16 @@ class Tiling:
     def _face_numbers(self):
         return faces_by_cell(self.faces)  # once per tiling: a scan of every face per cell grows as n^2
 
+    def face_numbers(self, index):
+        """Numbers (ascending, into self.faces) of the faces touching one cell."""
+        return self._face_numbers.get(tuple(index), ())
+
     def faces_of(self, index):
         """Faces touching one cell, as (face, side) with side -1 when the cell is on the face's min side, in the
         order of self.faces."""
         index = tuple(index)
         out = []
-        for n in self._face_numbers.get(index, ()):
+        for n in self.face_numbers(index):
             f = self.faces[n]
             if f.lower == index:
                 out.append((f, +1))
