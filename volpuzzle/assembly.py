@@ -47,7 +47,6 @@ from .errors import GeometryError
 from .geometry import is_ok
 from .grid import AXES, piece_id
 from .joint import joint_graph, joints_by_cell
-from .tile import faces_by_cell
 
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
 
@@ -155,15 +154,8 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
     jointed = []
     steps = []  # built as assembly (post-order), reversed at the end
 
-    of_cell = faces_by_cell(faces)
-
     def crossing(moving, fixed):
-        mv = set(moving)
-        # only faces of the moving cells can cross: every face of the tiling per split made planning quadratic
-        return [n for n in sorted({n for c in moving for n in of_cell.get(tuple(c), ())})
-                if (tuple(faces[n].lower) in mv) != (tuple(faces[n].upper) in mv)
-                and (tuple(faces[n].lower) in mv or tuple(faces[n].lower) in fixed)
-                and (tuple(faces[n].upper) in mv or tuple(faces[n].upper) in fixed)]
+        return [n for n, _ in parted_faces(tiling, moving, fixed)]
 
     def choose(cands, axis, lo_cells, moving=(), prefer_seam=False):
         """Faces (numbers) of one split that get a joint: the best one, plus parallel ones when F is known.
@@ -435,16 +427,9 @@ def with_joints(plan, tiling, joints):
 
     keys = {(int(j.axis), tuple(j.pin_cell), tuple(j.hole_cell), bool(j.across_seam)) for j in joints}
     numbers = [n for n, f in enumerate(tiling.faces) if _face_key(f) in keys]
-    of_cell = faces_by_cell([tiling.faces[n] for n in numbers])
-    steps = []
-    for s in plan.steps:
-        mv, fx = set(s.moving), set(s.fixed)
-        # the jointed faces of the moving cells, ascending: all of them per step made this quadratic
-        mine = [numbers[k] for k in sorted({k for c in s.moving for k in of_cell.get(tuple(c), ())})]
-        across = tuple(n for n in mine
-                       if (tuple(tiling.faces[n].lower) in mv and tuple(tiling.faces[n].upper) in fx)
-                       or (tuple(tiling.faces[n].lower) in fx and tuple(tiling.faces[n].upper) in mv))
-        steps.append(dataclasses.replace(s, joints=across))
+    jointed = set(numbers)
+    steps = [dataclasses.replace(s, joints=tuple(n for n, _ in parted_faces(tiling, s.moving, s.fixed) if n in jointed))
+             for s in plan.steps]
     return dataclasses.replace(plan, faces_with_joints=tuple((n, "lower") for n in numbers), steps=tuple(steps))
 
 
@@ -520,18 +505,24 @@ def _face_normal_grids(tiling, fmap, numbers, k=7):
     return out
 
 
-def _split_normals(tiling, fmap, step, k=7, of_cell=None):
-    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving.
-    of_cell: tile.faces_by_cell(tiling.faces), when the caller has it."""
-    mv, fx = set(step.moving), set(step.fixed)
-    numbers, signs = [], []
-    of_cell = of_cell if of_cell is not None else faces_by_cell(tiling.faces)
-    for n in sorted({n for c in step.moving for n in of_cell.get(tuple(c), ())}):
+def parted_faces(tiling, moving, fixed):
+    """The faces between the cells `moving` and `fixed` (indices), ascending -> list of (face number, +1 when its
+    upper cell is the moving one, else -1). Every such face touches a cell of the smaller side, so only those cells'
+    faces are looked at: a scan of every face of the tiling per split grows as n^2."""
+    mv, fx = {tuple(c) for c in moving}, {tuple(c) for c in fixed}
+    out = []
+    for n in sorted({n for c in min(mv, fx, key=len) for n in tiling.face_numbers(c)}):
         f = tiling.faces[n]
         lo, up = tuple(f.lower), tuple(f.upper)
-        if (lo in mv and up in fx) or (up in mv and lo in fx):
-            numbers.append(n)
-            signs.append(1.0 if up in mv else -1.0)
+        if (lo in mv and up in fx) or (lo in fx and up in mv):
+            out.append((n, 1 if up in mv else -1))
+    return out
+
+
+def _split_normals(tiling, fmap, step, k=7):
+    """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
+    parted = parted_faces(tiling, step.moving, step.fixed)
+    numbers, signs = [n for n, _ in parted], [float(sign) for _, sign in parted]
     grids = _face_normal_grids(tiling, fmap, numbers, k)
     return np.concatenate([g * sg for g, sg in zip(grids, signs, strict=True)]) if grids else np.zeros((0, 3))
 
@@ -542,9 +533,8 @@ def split_directions(tiling, fmap, plan):
     min_dot = least cosine between it and the surface's normals (> 0: the block can leave along it without touching
     the other block)."""
     out = []
-    of_cell = faces_by_cell(tiling.faces)
     for step in plan.steps:
-        ns = _split_normals(tiling, fmap, step, of_cell=of_cell)
+        ns = _split_normals(tiling, fmap, step)
         # the plan's direction, when it chose one
         d = leave_direction(ns) if step.slide is None else np.asarray(step.slide, float)
         if d is None or float(np.linalg.norm(d)) < 1e-12:

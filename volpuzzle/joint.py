@@ -517,21 +517,13 @@ def _largest_fit(fd, sizes, r_hi, l_min, lean=False):
 def _split_dirs(tiling, fmap, plan):
     """{face number: unit mm direction from its lower to its upper cell} along the sliding direction of the one
     split of the plan that parts the face's two cells."""
-    from .assembly import split_directions
+    from .assembly import parted_faces, split_directions
 
     out = {}
     for (d, _), step in zip(split_directions(tiling, fmap, plan), plan.steps, strict=True):
-        if not np.any(d):
-            continue
-        mv, fx = set(step.moving), set(step.fixed)
-        # a parted face has a cell on either side, so the faces of the smaller side's cells hold them all: a scan of
-        # every face for every split grew as n^2 (1.3 s of Python at 1024 pieces); ascending, as that scan went
-        numbers = sorted({n for c in min(mv, fx, key=len) for n in tiling.face_numbers(c)})
-        for n in numbers:
-            f = tiling.faces[n]
-            lo, up = tuple(f.lower), tuple(f.upper)
-            if (lo in mv and up in fx) or (lo in fx and up in mv):
-                out[n] = d if up in mv else -d
+        if np.any(d):
+            for n, sign in parted_faces(tiling, step.moving, step.fixed):
+                out[n] = d if sign > 0 else -d
     return out
 
 
