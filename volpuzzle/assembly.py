@@ -212,7 +212,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
             p = grid[a] // 2
             fixed = [c for c in cells if c[a] < p]
             moving = [c for c in cells if c[a] >= p]
-            cand = [n for n in crossing(moving, set(fixed)) if faces[n].axis == a]
+            cand = [n for n in crossing(moving, fixed) if faces[n].axis == a]
             mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
             chosen = choose(cand, a, mid_lo, moving, prefer_seam=True)
             jointed.extend(chosen)
@@ -226,7 +226,7 @@ def plan_assembly(tiling, fmap=None, max_angle_deg=DEFAULT_MAX_ANGLE_DEG, holds=
         else:
             a = longest(cells)
             fixed, moving = _halves(cells, a)
-        cand = [n for n in crossing(moving, set(fixed)) if faces[n].seam is None]
+        cand = [n for n in crossing(moving, fixed) if faces[n].seam is None]
         mid_lo = [float(np.mean(idx[:, x])) for x in range(3)]
         chosen = choose(cand, a, mid_lo)
         jointed.extend(chosen)
@@ -522,9 +522,9 @@ def parted_faces(tiling, moving, fixed):
 def _split_normals(tiling, fmap, step, k=7):
     """Area-weighted mm normals (m, 3) over every face crossing the step's split, oriented from fixed to moving."""
     parted = parted_faces(tiling, step.moving, step.fixed)
-    numbers, signs = [n for n, _ in parted], [float(sign) for _, sign in parted]
-    grids = _face_normal_grids(tiling, fmap, numbers, k)
-    return np.concatenate([g * sg for g, sg in zip(grids, signs, strict=True)]) if grids else np.zeros((0, 3))
+    grids = _face_normal_grids(tiling, fmap, [n for n, _ in parted], k)
+    return (np.concatenate([g * sign for g, (_, sign) in zip(grids, parted, strict=True)]) if grids
+            else np.zeros((0, 3)))
 
 
 def split_directions(tiling, fmap, plan):
