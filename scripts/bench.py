@@ -6,7 +6,8 @@
   4x4x64 is refused as crowded (87 pieces, slabs about 5 mm thick along w, find no spot for a pin that keeps clear
   of their other joints, even with joints.radius 1), so its figures need --torus-size 300 (all sizes then at
   300 mm, more triangles per piece);
-- --jobs 1 against --jobs 2 on the 256-piece build;
+- --jobs 1 against --jobs 2 on the 256-piece build, and the most any split could gain: --jobs 1 already keeps more
+  than one core busy (manifold's and numba's threads), so its CPU seconds spread over every core bound the speed-up;
 - bunny-cage against a plain manifold3d baseline written here: the same mesh cut into 2x2x2 boxes with 12 pins;
 - every spec in specs/ as written, with its joint figures (issue 9): touching pairs, those with room, those pinned,
   pieces without a joint, joint-graph parts, largest/smallest piece volume.
@@ -307,6 +308,14 @@ def main():
             one = results[256]
             print(f"  --jobs 2 / --jobs 1 at 256 pieces: whole build {one['wall'] / two['wall']:.2f}x faster (wall), "
                   f"compose {one['stages']['compose'] / max(two['stages']['compose'], 1e-9):.2f}x")
+            # --jobs 1 is already parallel in part (manifold's and numba's thread pools): the same CPU seconds
+            # spread over every core bound what a second process can gain
+            busy = (one["cpu"] + one["cpu_children"]) / one["wall"]
+            cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+            print(f"  --jobs 1 kept {busy:.2f} cores busy on average (its engines' threads), so on {cores} cores no "
+                  f"split of its {one['cpu'] + one['cpu_children']:.1f} CPU s can be more than {cores / busy:.2f}x "
+                  f"faster; --jobs 2 spent {two['cpu'] + two['cpu_children']:.1f} CPU s (its second process "
+                  f"starts and reads the pieces too)")
         if not args.no_examples:
             print("every example in specs/, as written:")
             for spec in sorted((REPO / "specs").glob("*.yaml")):

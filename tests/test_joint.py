@@ -429,3 +429,63 @@ def test_split_directions_per_face_are_those_of_every_face_tested_at_every_split
     got = J._split_dirs(t, fmap, plan)
     assert list(got) == list(expected) and len(got) == len(t.faces)
     assert all(np.array_equal(got[n], expected[n]) for n in expected)
+
+
+def test_side_distance_on_a_box_is_the_distance_to_the_nearest_other_face():
+    # a box cell's faces are planes: across the tangent plane of the nearest sample is the exact distance
+    t = _tiling(_box(), (1, 1, 1))
+    sides = J._Sides(t, _map(_box()))
+    rng = np.random.default_rng(5)
+    p = rng.uniform([2.0, 2.0, 2.0], [38.0, 28.0, 18.0], size=(40, 3))
+    size = np.array([40.0, 30.0, 20.0])
+    for axis in range(3):
+        for end in (0, 1):
+            walls = [np.abs(p[:, a] - (size[a] if e else 0.0))
+                     for a in range(3) for e in (0, 1) if (a, e) != (axis, end)]
+            got = sides.distance((0, 0, 0), (axis, end), p)
+            assert np.allclose(got, np.min(walls, axis=0), atol=1e-9)
+    # a face farther than `beyond` from the points counts as inf; only the near one measures
+    assert np.allclose(sides.distance((0, 0, 0), (0, 1), p[:1] * 0 + [1.0, 15.0, 10.0], beyond=5.0), 1.0)
+    assert np.isinf(sides.distance((0, 0, 0), (0, 1), np.array([[20.0, 15.0, 10.0]]), beyond=5.0)).all()
+
+
+def test_side_distance_beside_a_face_goes_straight_to_its_rim():
+    # one face, its samples on a 3 x 3 grid in z = 0; the rim samples are not inside it
+    g = np.array([0.0, 1.0, 2.0])
+    x = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(1, 9, 3)
+    nrm = np.tile([0.0, 0.0, 1.0], (1, 9, 1))
+    inner = np.zeros((1, 9), bool)
+    inner[0, 4] = True
+    p = np.array([[1.1, 0.9, 0.5], [5.0, 1.0, 3.0]])
+    # above the middle: its tangent plane; beside the face: the nearest rim sample (2, 1, 0)
+    assert np.allclose(J._face_distance(p, x, nrm, inner), [0.5, np.hypot(3.0, 3.0)])
+
+
+def test_cylinders_said_apart_are_apart_by_the_gap():
+    # any two cylinders apart_all passes have every point of one at least gap from every point of the other
+    rng = np.random.default_rng(11)
+
+    def solid(p0, p1, r, n=3000):
+        d = p1 - p0
+        u = d / np.linalg.norm(d)
+        a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(u, a)
+        t, phi, rho = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n), r * np.sqrt(rng.uniform(0, 1, n))
+        return p0 + t[:, None] * d + (rho * np.cos(phi))[:, None] * a + (rho * np.sin(phi))[:, None] * b
+
+    passed = failed = 0
+    for _ in range(60):
+        p0, q0 = rng.uniform(-4, 4, (2, 3))
+        p1, q1 = p0 + rng.uniform(-5, 5, 3), q0 + rng.uniform(-5, 5, 3)
+        rp, rq, gap = rng.uniform(0.5, 1.5, 3)
+        ok = J._Cylinders(p0[None], p1[None], rp).apart_all([(q0, q1, rq)], gap)[0]
+        if ok:
+            from scipy.spatial import cKDTree
+
+            near, _ = cKDTree(solid(q0, q1, rq)).query(solid(p0, p1, rp))
+            assert near.min() >= gap - 0.05
+            passed += 1
+        else:
+            failed += 1
+    assert passed > 5 and failed > 5  # both answers were exercised

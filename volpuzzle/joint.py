@@ -40,6 +40,7 @@ does; it is sized by the Jacobian at the face point, so it is right only to firs
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+from numba import njit
 
 from .errors import GeometryError, SpecError
 from .geometry import check_status
@@ -208,18 +209,25 @@ class _Geometry:
 _GRID = np.linspace(0.0, 1.0, 7)
 
 
-def _len_at(cell_lengths, idx, a, fr):
-    """Length (n,) mm of the a-lines of cell idx through fractions fr (n, 3), bilinear in the grid."""
-    b, c = _cyclic(a)
-    tab = cell_lengths.lengths[idx][a]
+def _lens_at(cell_lengths, idx, fr):
+    """Lengths (n, 3) mm of cell idx's parameter lines along each axis through fractions fr (n, 3), bilinear in the
+    grid: the three axes at once (a face's points ask for all three)."""
+    fr = np.asarray(fr, dtype=float)
+    tab = cell_lengths.lengths[idx]  # (3, G, G)
     g = len(_GRID) - 1
-    x = np.clip(np.asarray(fr, dtype=float)[:, b], 0.0, 1.0) * g
-    y = np.clip(np.asarray(fr, dtype=float)[:, c], 0.0, 1.0) * g
+    x = np.clip(fr[:, [1, 2, 0]], 0.0, 1.0) * g  # column a: the fraction along the axis after a (_cyclic)
+    y = np.clip(fr[:, [2, 0, 1]], 0.0, 1.0) * g
     i = np.minimum(x.astype(int), g - 1)
     j = np.minimum(y.astype(int), g - 1)
     tx, ty = x - i, y - j
-    return ((1 - tx) * (1 - ty) * tab[i, j] + tx * (1 - ty) * tab[i + 1, j] + (1 - tx) * ty * tab[i, j + 1]
-            + tx * ty * tab[i + 1, j + 1])
+    a = np.arange(3)[None, :]
+    return ((1 - tx) * (1 - ty) * tab[a, i, j] + tx * (1 - ty) * tab[a, i + 1, j] + (1 - tx) * ty * tab[a, i, j + 1]
+            + tx * ty * tab[a, i + 1, j + 1])
+
+
+def _len_at(cell_lengths, idx, a, fr):
+    """Length (n,) mm of the a-lines of cell idx through fractions fr (n, 3)."""
+    return _lens_at(cell_lengths, idx, fr)[:, a]
 
 
 def _center_len(cell_lengths, idx, a):
@@ -407,8 +415,7 @@ def _face_shapes(tiling, fmap, cell_lengths, reach_max):
         for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
             t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
             tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
-        lens = {side: np.stack([_len_at(cell_lengths, idx, ax, frs) for ax in range(3)], axis=1)
-                for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
+        lens = {side: _lens_at(cell_lengths, idx, frs) for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
         out.append(_FaceShape(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, tangents, lens,
                               xr[n] - x[n][:, None, :], usable, {-1: jac[n], +1: jac_up[n]}))
     return out
@@ -581,16 +588,8 @@ class _Sides:
                     near_faces.append((x, nrm, inner))
         if not near_faces:
             return np.full(len(p), np.inf)
-        # the faces at once (f of them, m samples each): one array operation each instead of one per face
         x, nrm, inner = (np.stack(parts) for parts in zip(*near_faces, strict=True))
-        diff = p[None, :, None, :] - x[:, None, :, :]  # (f, n, m, 3)
-        dist = np.einsum("fnmi,fnmi->fnm", diff, diff)
-        near = np.argmin(dist, axis=2)  # (f, n)
-        fi, ni = np.arange(len(x))[:, None], np.arange(len(p))[None, :]
-        at = nrm[fi, near]
-        plane = np.abs(np.einsum("fni,fni->fn", diff[fi, ni, near], at))
-        d = np.where(inner[fi, near] & np.any(at != 0.0, axis=2), plane, np.sqrt(dist[fi, ni, near]))
-        return d.min(axis=0)
+        return _face_distance(np.ascontiguousarray(p, dtype=float), x, nrm, inner)
 
     def clear(self, fd, k, s):
         """Whether the joint at point k of face fd at size s keeps its radius and SIDE_WALL of a wall to every other
@@ -610,6 +609,32 @@ class _Sides:
                 break
         self._clear[key] = out
         return out
+
+
+@njit(cache=True, nogil=True)
+def _face_distance(p, x, nrm, inner):
+    """_Sides.distance over sampled faces: points p (n, 3); samples x (f, m, 3), their unit normals nrm (f, m, 3)
+    (zero where collapsed) and whether each lies inside its face (f, m) -> (n,) mm to the nearest face: across the
+    tangent plane of the nearest sample inside a face, straight to a sample on its rim. Compiled: placing the joints
+    of 1024 pieces measures ~8k point sets, which numpy spent ~5 s on (the serial joint stage)."""
+    n, f, m = p.shape[0], x.shape[0], x.shape[1]
+    out = np.full(n, np.inf)
+    for i in range(n):
+        for g in range(f):
+            best, near = np.inf, 0
+            for s in range(m):
+                d0, d1, d2 = p[i, 0] - x[g, s, 0], p[i, 1] - x[g, s, 1], p[i, 2] - x[g, s, 2]
+                dd = d0 * d0 + d1 * d1 + d2 * d2
+                if dd < best:  # the first of equal ones, as argmin
+                    best, near = dd, s
+            a0, a1, a2 = nrm[g, near, 0], nrm[g, near, 1], nrm[g, near, 2]
+            if inner[g, near] and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0):
+                d = abs((p[i, 0] - x[g, near, 0]) * a0 + (p[i, 1] - x[g, near, 1]) * a1
+                        + (p[i, 2] - x[g, near, 2]) * a2)
+            else:
+                d = np.sqrt(best)
+            out[i] = min(out[i], d)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -773,56 +798,90 @@ def _fit_of(memo, fd, i, s):
 
 
 class _Cylinders:
-    """Cylinders of axes p0 -> p1 (k, 3) and radius rp, with what their tests against other cylinders need of them
-    alone, computed once for all the joints they are tested against (apart_all)."""
+    """Cylinders of axes p0 -> p1 (k, 3) and radius rp, each tested against the joints already placed (apart_all)."""
 
-    __slots__ = ("p0", "p1", "rp", "d1", "a", "u1", "p_lo", "p_hi")
+    __slots__ = ("p0", "p1", "rp")
 
     def __init__(self, p0, p1, rp):
-        self.p0, self.p1, self.rp = p0, p1, rp
-        self.d1 = p1 - p0
-        self.a = np.einsum("ki,ki->k", self.d1, self.d1)
-        self.u1 = self.d1 / np.sqrt(self.a)[:, None]
-        e0, e1 = np.einsum("ki,ki->k", self.u1, p0), np.einsum("ki,ki->k", self.u1, p1)
-        self.p_lo, self.p_hi = np.minimum(e0, e1), np.maximum(e0, e1)
+        self.p0 = np.ascontiguousarray(p0, dtype=float)
+        self.p1 = np.ascontiguousarray(p1, dtype=float)
+        self.rp = float(rp)
 
     def apart_all(self, others, gap):
         """(k,) bool: each of these cylinders is at least gap apart from every one of others [(q0 (3,), q1 (3,),
-        rq)] (m of them, tested at once): their axes are that far beyond both radii, or one lies wholly that far
-        beyond an end plane of the other."""
-        q0 = np.array([q[0] for q in others])  # (m, 3)
-        q1 = np.array([q[1] for q in others])
-        rq = np.array([q[2] for q in others])  # (m,)
-        p0, p1, rp, d1, a, u1 = self.p0, self.p1, self.rp, self.d1, self.a[:, None], self.u1
-        d2 = q1 - q0
-        r = p0[:, None, :] - q0[None, :, :]  # (k, m, 3)
-        e = np.einsum("mi,mi->m", d2, d2)
-        f = np.einsum("kmi,mi->km", r, d2)
-        c = np.einsum("ki,kmi->km", d1, r)
-        bb = np.einsum("ki,mi->km", d1, d2)
-        denom = a * e - bb * bb
-        s = np.where(denom > 1e-12 * a * e, np.clip((bb * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
-                     0.0)
-        t = (bb * s + f) / e
-        s = np.where(t < 0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1, np.clip((bb - c) / a, 0.0, 1.0), s))
-        t = np.clip(t, 0.0, 1.0)
-        dist = np.linalg.norm(p0[:, None, :] + d1[:, None, :] * s[:, :, None] - (q0 + d2 * t[:, :, None]), axis=2)
-        ok = dist >= rp + rq + gap - 1e-9
-        u2 = d2 / np.sqrt(e)[:, None]
-        cs = np.clip(np.einsum("ki,mi->km", u1, u2), -1.0, 1.0)
-        sn = np.sqrt(1.0 - cs * cs)
-        # q beyond an end plane of p
-        e0, e1 = np.einsum("ki,mi->km", u1, q0), np.einsum("ki,mi->km", u1, q1)
-        q_lo = np.minimum(e0, e1) - rq * sn
-        q_hi = np.maximum(e0, e1) + rq * sn
-        ok |= (q_lo >= self.p_hi[:, None] + gap - 1e-9) | (q_hi <= self.p_lo[:, None] - gap + 1e-9)
-        # p beyond an end plane of q
-        pp0, pp1 = np.einsum("ki,mi->km", p0, u2), np.einsum("ki,mi->km", p1, u2)
-        lo2 = np.minimum(pp0, pp1) - rp * sn
-        hi2 = np.maximum(pp0, pp1) + rp * sn
-        f0, f1 = np.einsum("mi,mi->m", q0, u2), np.einsum("mi,mi->m", q1, u2)
-        ok |= (lo2 >= np.maximum(f0, f1) + gap - 1e-9) | (hi2 <= np.minimum(f0, f1) - gap + 1e-9)
-        return ok.all(axis=1)
+        rq)]: their axes are that far beyond both radii, or one lies wholly that far beyond an end plane of the
+        other."""
+        q0 = np.array([q[0] for q in others], dtype=float).reshape(-1, 3)
+        q1 = np.array([q[1] for q in others], dtype=float).reshape(-1, 3)
+        rq = np.array([q[2] for q in others], dtype=float)
+        return _apart(self.p0, self.p1, self.rp, q0, q1, rq, float(gap))
+
+
+@njit(cache=True, nogil=True)
+def _dot(x, i, y, j):
+    return x[i, 0] * y[j, 0] + x[i, 1] * y[j, 1] + x[i, 2] * y[j, 2]
+
+
+@njit(cache=True, nogil=True)
+def _apart(p0, p1, rp, q0, q1, rq, gap):
+    """_Cylinders.apart_all on arrays: p0, p1 (k, 3), rp; q0, q1 (m, 3), rq (m,) -> (k,) bool. Compiled: placing the
+    joints of 1024 pieces asks it ~12k times, each of ~169 points against a few joints, which numpy spent ~6 s on in
+    call overhead alone (the serial joint stage)."""
+    k, m = p0.shape[0], q0.shape[0]
+    out = np.ones(k, np.bool_)
+    d1 = np.empty((1, 3))
+    d2 = np.empty((1, 3))
+    u1 = np.empty((1, 3))
+    u2 = np.empty((1, 3))
+    for i in range(k):
+        for c in range(3):
+            d1[0, c] = p1[i, c] - p0[i, c]
+        a = _dot(d1, 0, d1, 0)
+        la = np.sqrt(a)
+        for c in range(3):
+            u1[0, c] = d1[0, c] / la
+        e0, e1 = _dot(u1, 0, p0, i), _dot(u1, 0, p1, i)
+        p_lo, p_hi = min(e0, e1), max(e0, e1)
+        for j in range(m):
+            for c in range(3):
+                d2[0, c] = q1[j, c] - q0[j, c]
+            e = _dot(d2, 0, d2, 0)
+            r0, r1, r2 = p0[i, 0] - q0[j, 0], p0[i, 1] - q0[j, 1], p0[i, 2] - q0[j, 2]
+            f = r0 * d2[0, 0] + r1 * d2[0, 1] + r2 * d2[0, 2]
+            cc = d1[0, 0] * r0 + d1[0, 1] * r1 + d1[0, 2] * r2
+            bb = _dot(d1, 0, d2, 0)
+            # closest points of the two axes (segments), clamped to their ends
+            denom = a * e - bb * bb
+            s = min(max((bb * f - cc * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
+            t = (bb * s + f) / e
+            if t < 0:
+                s = min(max(-cc / a, 0.0), 1.0)
+            elif t > 1:
+                s = min(max((bb - cc) / a, 0.0), 1.0)
+            t = min(max(t, 0.0), 1.0)
+            x0 = p0[i, 0] + d1[0, 0] * s - (q0[j, 0] + d2[0, 0] * t)
+            x1 = p0[i, 1] + d1[0, 1] * s - (q0[j, 1] + d2[0, 1] * t)
+            x2 = p0[i, 2] + d1[0, 2] * s - (q0[j, 2] + d2[0, 2] * t)
+            if np.sqrt(x0 * x0 + x1 * x1 + x2 * x2) >= rp + rq[j] + gap - 1e-9:
+                continue
+            le = np.sqrt(e)
+            for c in range(3):
+                u2[0, c] = d2[0, c] / le
+            cs = min(max(_dot(u1, 0, u2, 0), -1.0), 1.0)
+            sn = np.sqrt(1.0 - cs * cs)
+            # q beyond an end plane of p
+            g0, g1 = _dot(u1, 0, q0, j), _dot(u1, 0, q1, j)
+            if min(g0, g1) - rq[j] * sn >= p_hi + gap - 1e-9 or max(g0, g1) + rq[j] * sn <= p_lo - gap + 1e-9:
+                continue
+            # p beyond an end plane of q
+            h0, h1 = _dot(p0, i, u2, 0), _dot(p1, i, u2, 0)
+            f0, f1 = _dot(q0, j, u2, 0), _dot(q1, j, u2, 0)
+            if (min(h0, h1) - rp * sn >= max(f0, f1) + gap - 1e-9
+                    or max(h0, h1) + rp * sn <= min(f0, f1) - gap + 1e-9):
+                continue
+            out[i] = False
+            break
+    return out
 
 
 def _cost(chosen, sizes, data, cells):
