@@ -818,38 +818,30 @@ class _Cylinders:
 
 
 @njit(cache=True, nogil=True)
-def _dot(x, i, y, j):
-    return x[i, 0] * y[j, 0] + x[i, 1] * y[j, 1] + x[i, 2] * y[j, 2]
-
-
-@njit(cache=True, nogil=True)
 def _apart(p0, p1, rp, q0, q1, rq, gap):
     """_Cylinders.apart_all on arrays: p0, p1 (k, 3), rp; q0, q1 (m, 3), rq (m,) -> (k,) bool. Compiled: placing the
     joints of 1024 pieces asks it ~12k times, each of ~169 points against a few joints, which numpy spent ~6 s on in
-    call overhead alone (the serial joint stage)."""
+    call overhead alone (the serial joint stage). Dot products are written out (x0 y0 + x1 y1 + x2 y2, numpy's
+    order), as one kernel compiles once on a new machine where helpers would compile once per argument type."""
     k, m = p0.shape[0], q0.shape[0]
     out = np.ones(k, np.bool_)
-    d1 = np.empty((1, 3))
-    d2 = np.empty((1, 3))
-    u1 = np.empty((1, 3))
-    u2 = np.empty((1, 3))
     for i in range(k):
-        for c in range(3):
-            d1[0, c] = p1[i, c] - p0[i, c]
-        a = _dot(d1, 0, d1, 0)
+        a0, a1, a2 = p0[i, 0], p0[i, 1], p0[i, 2]
+        d0, d1, d2 = p1[i, 0] - a0, p1[i, 1] - a1, p1[i, 2] - a2
+        a = d0 * d0 + d1 * d1 + d2 * d2
         la = np.sqrt(a)
-        for c in range(3):
-            u1[0, c] = d1[0, c] / la
-        e0, e1 = _dot(u1, 0, p0, i), _dot(u1, 0, p1, i)
+        u0, u1, u2 = d0 / la, d1 / la, d2 / la
+        e0 = u0 * a0 + u1 * a1 + u2 * a2
+        e1 = u0 * p1[i, 0] + u1 * p1[i, 1] + u2 * p1[i, 2]
         p_lo, p_hi = min(e0, e1), max(e0, e1)
         for j in range(m):
-            for c in range(3):
-                d2[0, c] = q1[j, c] - q0[j, c]
-            e = _dot(d2, 0, d2, 0)
-            r0, r1, r2 = p0[i, 0] - q0[j, 0], p0[i, 1] - q0[j, 1], p0[i, 2] - q0[j, 2]
-            f = r0 * d2[0, 0] + r1 * d2[0, 1] + r2 * d2[0, 2]
-            cc = d1[0, 0] * r0 + d1[0, 1] * r1 + d1[0, 2] * r2
-            bb = _dot(d1, 0, d2, 0)
+            b0, b1, b2 = q0[j, 0], q0[j, 1], q0[j, 2]
+            c0, c1, c2 = q1[j, 0] - b0, q1[j, 1] - b1, q1[j, 2] - b2
+            e = c0 * c0 + c1 * c1 + c2 * c2
+            r0, r1, r2 = a0 - b0, a1 - b1, a2 - b2
+            f = r0 * c0 + r1 * c1 + r2 * c2
+            cc = d0 * r0 + d1 * r1 + d2 * r2
+            bb = d0 * c0 + d1 * c1 + d2 * c2
             # closest points of the two axes (segments), clamped to their ends
             denom = a * e - bb * bb
             s = min(max((bb * f - cc * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
@@ -859,23 +851,25 @@ def _apart(p0, p1, rp, q0, q1, rq, gap):
             elif t > 1:
                 s = min(max((bb - cc) / a, 0.0), 1.0)
             t = min(max(t, 0.0), 1.0)
-            x0 = p0[i, 0] + d1[0, 0] * s - (q0[j, 0] + d2[0, 0] * t)
-            x1 = p0[i, 1] + d1[0, 1] * s - (q0[j, 1] + d2[0, 1] * t)
-            x2 = p0[i, 2] + d1[0, 2] * s - (q0[j, 2] + d2[0, 2] * t)
+            x0 = a0 + d0 * s - (b0 + c0 * t)
+            x1 = a1 + d1 * s - (b1 + c1 * t)
+            x2 = a2 + d2 * s - (b2 + c2 * t)
             if np.sqrt(x0 * x0 + x1 * x1 + x2 * x2) >= rp + rq[j] + gap - 1e-9:
                 continue
             le = np.sqrt(e)
-            for c in range(3):
-                u2[0, c] = d2[0, c] / le
-            cs = min(max(_dot(u1, 0, u2, 0), -1.0), 1.0)
+            v0, v1, v2 = c0 / le, c1 / le, c2 / le
+            cs = min(max(u0 * v0 + u1 * v1 + u2 * v2, -1.0), 1.0)
             sn = np.sqrt(1.0 - cs * cs)
             # q beyond an end plane of p
-            g0, g1 = _dot(u1, 0, q0, j), _dot(u1, 0, q1, j)
+            g0 = u0 * b0 + u1 * b1 + u2 * b2
+            g1 = u0 * q1[j, 0] + u1 * q1[j, 1] + u2 * q1[j, 2]
             if min(g0, g1) - rq[j] * sn >= p_hi + gap - 1e-9 or max(g0, g1) + rq[j] * sn <= p_lo - gap + 1e-9:
                 continue
             # p beyond an end plane of q
-            h0, h1 = _dot(p0, i, u2, 0), _dot(p1, i, u2, 0)
-            f0, f1 = _dot(q0, j, u2, 0), _dot(q1, j, u2, 0)
+            h0 = a0 * v0 + a1 * v1 + a2 * v2
+            h1 = p1[i, 0] * v0 + p1[i, 1] * v1 + p1[i, 2] * v2
+            f0 = b0 * v0 + b1 * v1 + b2 * v2
+            f1 = q1[j, 0] * v0 + q1[j, 1] * v1 + q1[j, 2] * v2
             if (min(h0, h1) - rp * sn >= max(f0, f1) + gap - 1e-9
                     or max(h0, h1) + rp * sn <= min(f0, f1) - gap + 1e-9):
                 continue
