@@ -225,13 +225,8 @@ def _lens_at(cell_lengths, idx, fr):
             + tx * ty * tab[a, i + 1, j + 1])
 
 
-def _len_at(cell_lengths, idx, a, fr):
-    """Length (n,) mm of the a-lines of cell idx through fractions fr (n, 3)."""
-    return _lens_at(cell_lengths, idx, fr)[:, a]
-
-
 def _center_len(cell_lengths, idx, a):
-    return float(_len_at(cell_lengths, idx, a, np.full((1, 3), 0.5))[0])
+    return float(_lens_at(cell_lengths, idx, np.full((1, 3), 0.5))[0, a])
 
 
 def _measure(tiling, fmap):
@@ -259,9 +254,9 @@ def _face_side(cell_lengths, f):
     b, c = _cyclic(f.axis)
     fr = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
     fr[0, f.axis], fr[1, f.axis] = 1.0, 0.0
-    lo = [_len_at(cell_lengths, f.lower, x, fr[:1])[0] for x in (b, c)]
-    up = [_len_at(cell_lengths, f.upper, x, fr[1:])[0] for x in (b, c)]
-    return float(min(lo + up))
+    lo = _lens_at(cell_lengths, f.lower, fr[:1])[0, [b, c]]
+    up = _lens_at(cell_lengths, f.upper, fr[1:])[0, [b, c]]
+    return float(min(lo.min(), up.min()))
 
 
 def _round_down(x, step=0.1):
