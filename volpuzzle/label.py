@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from functools import cache, lru_cache
 
 import numpy as np
+from numba import njit
 
 from .errors import GeometryError
 from .geometry import is_ok
@@ -403,19 +404,40 @@ def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=No
     lim = np.maximum(terms["mx"] * (2.0 / aspect), terms["my2"])
     lim[terms["mout"]] = np.inf
     height = np.minimum(height, lim.min(axis=0))
-    # runs that could still lower a centre that may hold the text
-    ci, ki = np.nonzero(low < np.where(height >= alive_min, height, -np.inf)[None])
-    if len(ci):
-        sel = ko["idx"][ci]
-        p = pts[sel]  # (r, _CHUNK, 3)
-        qx = np.abs(np.einsum("rgi,ri->rg", p, right[ki]) - xr[ki][:, None])
-        qy = np.abs(np.einsum("rgi,ri->rg", p, up[ki]) - xu[ki][:, None])
-        z = np.einsum("rgi,ri->rg", p, normal[ki]) - xn[ki][:, None]
-        pp = pad[sel]
-        lim = np.maximum((qx - pp) * (2.0 / aspect), (qy - pp) * 2.0)
-        lim[(z <= lo[sel]) | (z >= hi[sel])] = np.inf
-        np.minimum.at(height, ki, lim.min(axis=1))
-    return height
+    return _refined(height, low, float(alive_min), ko["idx"], pts, pad, lo, hi, right, up, normal, xr, xu, xn,
+                    2.0 / aspect)
+
+
+@njit(cache=True, nogil=True)
+def _refined(height, low, alive_min, idx, pts, pad, lo, hi, right, up, normal, xr, xu, xn, scale_x):
+    """_heights_allowed's last step: height (k,) lowered by the points of every run (idx (runs, _CHUNK)) whose bound
+    low (runs, k) is below the height of a centre that may still hold the text (at least alive_min) -> (k,).
+    Compiled: most calls measure a few runs, and numpy spent most of them gathering and allocating; the arithmetic
+    is numpy's, in its order (a dot product x0 y0 + x1 y1 + x2 y2, NaN wins every maximum and minimum)."""
+    runs, k = low.shape
+    out = height.copy()
+    for j in range(k):
+        bar = height[j] if height[j] >= alive_min else -np.inf
+        for c in range(runs):
+            if not low[c, j] < bar:
+                continue
+            best = np.inf
+            for g in range(idx.shape[1]):
+                q = idx[c, g]
+                z = pts[q, 0] * normal[j, 0] + pts[q, 1] * normal[j, 1] + pts[q, 2] * normal[j, 2] - xn[j]
+                if z <= lo[q] or z >= hi[q]:
+                    continue  # outside its band: no limit (inf)
+                qx = abs(pts[q, 0] * right[j, 0] + pts[q, 1] * right[j, 1] + pts[q, 2] * right[j, 2] - xr[j])
+                qy = abs(pts[q, 0] * up[j, 0] + pts[q, 1] * up[j, 1] + pts[q, 2] * up[j, 2] - xu[j])
+                a, b = (qx - pad[q]) * scale_x, (qy - pad[q]) * 2.0
+                v = np.nan if (a != a or b != b) else (a if a > b else b)
+                if v < best or v != v:
+                    best = v
+                if best != best:
+                    break
+            if best < out[j] or best != best:
+                out[j] = best
+    return out
 
 
 _FACE_SAMPLES = weakref.WeakKeyDictionary()  # fmap -> {face: samples}; both cells of a face share them
