@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from shapes import half_cone, ring
 
+from volpuzzle import _joint_kernels as K
 from volpuzzle import joint as J
 from volpuzzle.errors import GeometryError, SpecError
 from volpuzzle.mapping import Map
@@ -458,7 +459,7 @@ def test_side_distance_beside_a_face_goes_straight_to_its_rim():
     inner[0, 4] = True
     p = np.array([[1.1, 0.9, 0.5], [5.0, 1.0, 3.0]])
     # above the middle: its tangent plane; beside the face: the nearest rim sample (2, 1, 0)
-    assert np.allclose(J._face_distance(p, x, nrm, inner), [0.5, np.hypot(3.0, 3.0)])
+    assert np.allclose(K.face_distance(p, x, nrm, inner), [0.5, np.hypot(3.0, 3.0)])
 
 
 def test_cylinders_said_apart_are_apart_by_the_gap():
@@ -489,3 +490,13 @@ def test_cylinders_said_apart_are_apart_by_the_gap():
         else:
             failed += 1
     assert passed > 5 and failed > 5  # both answers were exercised
+
+
+def test_reading_joints_does_not_load_the_compiled_kernels():
+    # `volpuzzle check` reads a build's joints through this module: numba (~0.5 s to import) is only for placing them
+    import subprocess
+    import sys
+
+    code = "import sys, volpuzzle.joint, volpuzzle.check; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
