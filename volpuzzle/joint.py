@@ -206,6 +206,7 @@ class _Geometry:
 
 
 _GRID = np.linspace(0.0, 1.0, 7)
+_AFTER = [[_cyclic(a)[k] for a in range(3)] for k in (0, 1)]  # the axes b, c after each axis a (_cyclic)
 
 
 def _lens_at(cell_lengths, idx, fr):
@@ -214,8 +215,8 @@ def _lens_at(cell_lengths, idx, fr):
     fr = np.asarray(fr, dtype=float)
     tab = cell_lengths.lengths[idx]  # (3, G, G)
     g = len(_GRID) - 1
-    x = np.clip(fr[:, [1, 2, 0]], 0.0, 1.0) * g  # column a: the fraction along the axis after a (_cyclic)
-    y = np.clip(fr[:, [2, 0, 1]], 0.0, 1.0) * g
+    x = np.clip(fr[:, _AFTER[0]], 0.0, 1.0) * g  # column a: the fractions along the two axes after a
+    y = np.clip(fr[:, _AFTER[1]], 0.0, 1.0) * g
     i = np.minimum(x.astype(int), g - 1)
     j = np.minimum(y.astype(int), g - 1)
     tx, ty = x - i, y - j
