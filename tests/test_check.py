@@ -259,3 +259,30 @@ def test_pairs_whose_parts_lie_apart_need_no_boolean(monkeypatch, exact):
     real = C.overlap_volume
     monkeypatch.setattr(C, "overlap_volume", lambda a, b: calls.append(1) or real(a, b))
     assert C._overlaps(shared, [(0, 1), (0, 2)]) == measured and len(calls) == 1
+
+
+def test_a_pieces_joints_tested_together_still_name_the_one_that_fails():
+    # a piece's pins (and its holes) are first measured together on the union of their cylinders: two pins that fit
+    # pass in that one Boolean, and of two where one hole was not dug only that joint fails, with its own figure
+    import manifold3d as m3
+    import trimesh
+
+    from volpuzzle.check import check_joints
+
+    def mesh(solid):
+        out = solid.to_mesh()
+        return trimesh.Trimesh(out.vert_properties[:, :3], out.tri_verts, process=True)
+
+    pins = [(-3.0, 0.0), (3.0, 0.0)]
+    below = m3.Manifold.cube([12, 8, 5], True).translate([0, 0, -2.5])
+    above = m3.Manifold.cube([12, 8, 5], True).translate([0, 0, 2.5])
+    for x, y in pins:
+        below = below + m3.Manifold.cylinder(3.0, 1.0, 1.0, 48).translate([x, y, 0])
+    holes = [m3.Manifold.cylinder(3.3, 1.15, 1.15, 48).translate([x, y, 0]) for x, y in pins]
+    joints = [{"pin_piece": "a", "hole_piece": "b", "center_mm": [x, y, 0], "direction": [0, 0, 1], "radius_mm": 1.0,
+               "length_mm": 3.0, "clearance_mm": 0.15, "style": "pin", "shape": "cylinder"} for x, y in pins]
+    assert check_joints({"a": mesh(below), "b": mesh(above - holes[0] - holes[1])}, joints) == []
+    failures = check_joints({"a": mesh(below), "b": mesh(above - holes[0])}, joints)
+    assert len(failures) == 1 and "does not fit its hole in b" in failures[0]
+    alone = check_joints({"a": mesh(below), "b": mesh(above - holes[0])}, joints[1:])
+    assert failures == alone  # the same volume as when that joint is tested by itself

@@ -153,3 +153,16 @@ def test_freed_memory_goes_back_through_glibc_and_elsewhere_nothing_is_tried(mon
     G._return_freed_memory()  # a no-op there, not an error
     monkeypatch.undo()
     G._malloc_trim.cache_clear()
+
+
+def test_a_frame_is_built_with_numpys_cross_products_to_the_bit():
+    from volpuzzle.grid import frame_from_direction
+
+    rng = np.random.default_rng(3)
+    for n in rng.normal(size=(200, 3)):
+        n = n / np.linalg.norm(n)
+        e1, e2, _ = frame_from_direction(n)
+        helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+        expect = np.cross(helper, n)
+        expect /= np.linalg.norm(expect)
+        assert np.array_equal(e1, expect) and np.array_equal(e2, np.cross(n, expect))

@@ -348,7 +348,7 @@ def test_joint_checks_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_
               dict(joint, pin_piece="a", hole_piece="c", center_mm=[20, 0, 0])]  # no pin there, c in the way
     serial = check.check_joints(meshes, joints)
     assert len(serial) == 4 and "the pin of d is missing" in serial[0] and "hole in c" in serial[1]
-    monkeypatch.setattr(check, "_JOINTS_PER_TASK", per_task)
+    monkeypatch.setattr(check, "_PIECES_PER_TASK", per_task)
     for main_takes in (False, True):
         monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
         assert check.check_joints(meshes, joints, workers=pool) == serial

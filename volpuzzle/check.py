@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
-from .geometry import cylinder, is_ok
+from .geometry import boolean, check_status, cylinder, is_ok
 from .geometry import memo as _memo
 
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
@@ -514,62 +514,103 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
     meshes: {piece id: closed trimesh in mm}; joints: report.json joint entries. A pin's core (90% of its radius and
     length) must lie inside the pin piece, and the pin grown by half its clearance must not touch the hole piece
     (both within `share` of the tested volume, which absorbs the polygonal circles). workers: a
-    volpuzzle.workers.Workers that tests some of the joints (the same sentences, in joint order)."""
+    volpuzzle.workers.Workers that tests some of the pieces (the same sentences, in joint order)."""
     from .workers import MeshRef, map_pieces
 
-    tested = [j for j in joints if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
-    used = {j[key] for j in tested for key in ("pin_piece", "hole_piece")}
-    # consecutive joints share their pieces (they are listed face by face), so a chunk's pieces are few
-    chunks = [tested[c:c + _JOINTS_PER_TASK] for c in range(0, len(tested), _JOINTS_PER_TASK)]
-    found = map_pieces(workers, _joint_failures, chunks, shared=({pid: MeshRef(meshes[pid]) for pid in used}, share),
-                       what="check")
-    return [f for chunk in found for f in chunk]
+    tested = [(k, j) for k, j in enumerate(joints) if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
+    used = {j[key] for _, j in tested for key in ("pin_piece", "hole_piece")}
+    broken = {pid for pid in used if isinstance(piece_solid(meshes[pid], pid), str)}  # check_pieces says why
+    tests = {}  # piece id -> [(joint index, test of that joint, kind, cylinders)], in joint order
+    for k, j in tested:
+        if j["pin_piece"] not in broken and j["hole_piece"] not in broken:
+            for order, (pid, kind, cylinders) in enumerate(_joint_tests(j)):
+                tests.setdefault(pid, []).append((k, order, kind, cylinders))
+    items = list(tests.items())
+    chunks = [items[c:c + _PIECES_PER_TASK] for c in range(0, len(items), _PIECES_PER_TASK)]
+    found = map_pieces(workers, _joint_measures, chunks,
+                       shared=({pid: MeshRef(meshes[pid]) for pid in tests}, share), what="check")
+    failed = sorted(f for chunk in found for f in chunk)
+    return [_joint_sentence(joints[k], order, volume) for k, order, volume in failed]
 
 
-_JOINTS_PER_TASK = 16  # joints per worker task: ~7 ms of Booleans each
+_PIECES_PER_TASK = 8  # pieces per worker task: ~25 ms of Booleans and test cylinders
 
 
-def _joint_failures(shared, joints):
-    """check_joints' failure sentences for joints (report entries whose pieces are in shared), wherever they are
-    tested: shared ({piece id: MeshRef}, share)."""
+def _joint_tests(j):
+    """The tests of one joint entry -> [(piece id, kind, cylinders (_cylinder's arguments) whose union is tested)]:
+    kind "inside" measures the cylinders' volume outside the piece, "clear" their volume inside it."""
+    pin, hole = j["pin_piece"], j["hole_piece"]
+    c, d = j["center_mm"], j["direction"]
+    r, length, cl = float(j["radius_mm"]), float(j["length_mm"]), float(j.get("clearance_mm", 0.0))
+    if j.get("style", "pin") == "dowel":
+        room = [(c, d, r + 0.5 * cl, -0.9 * length, 0.9 * length)]
+        return [(pin, "clear", room), (hole, "clear", room)]
+    room = [(c, d, r + 0.5 * cl, 0.05 * length, length)]
+    if j.get("shape") == "snap":
+        # the snap hole necks with its pin to 0.9 r past 70% of the length (joint._snap_profile): a plain room
+        # of radius r there would find the neck's wall in the hole piece and fail every snap joint
+        room = [(c, d, r + 0.5 * cl, 0.05 * length, 0.7 * length),
+                (c, d, 0.9 * r + 0.5 * cl, 0.05 * length, 0.9 * length)]
+    return [(pin, "inside", [(c, d, 0.9 * r, 0.1 * length, 0.9 * length)]), (hole, "clear", room)]
+
+
+def _joint_sentence(j, order, volume):
+    """The failure sentence of test `order` of joint entry j (_joint_tests), which measured `volume` mm^3."""
+    pin, hole = j["pin_piece"], j["hole_piece"]
+    r, cl = float(j["radius_mm"]), float(j.get("clearance_mm", 0.0))
+    name = f"joint {pin} -> {hole}"
+    if j.get("style", "pin") == "dowel":
+        return (f"{name}: the dowel hole in {(pin, hole)[order]} is blocked ({volume:.3g} mm^3 of material "
+                f"within radius {r + 0.5 * cl:.2f} mm)")
+    if order == 0:
+        return f"{name}: the pin of {pin} is missing ({volume:.3g} mm^3 of its core is not there)"
+    return (f"{name}: the pin does not fit its hole in {hole} with clearance {cl:g} mm ({volume:.3g} mm^3 of {hole} "
+            f"within radius {r + 0.5 * cl:.2f} mm of the pin axis)")
+
+
+def _joint_measures(shared, items):
+    """[(joint index, test, volume mm^3)] of the tests that fail, for items [(piece id, its tests of
+    check_joints)], wherever they are measured: shared ({piece id: MeshRef}, share).
+
+    A piece's tests of one kind are first measured together, on the union of their cylinders: a part of the union
+    holds at most what the whole does, so when the whole is within the smallest allowance every test passes, in one
+    Boolean where a piece with 3 pins and 3 holes would take 6 (the piece, not the small cylinder, is most of a
+    Boolean's cost). Otherwise each test is measured alone, as its sentence gives its own volume."""
+    from manifold3d import Manifold, OpType
+
     refs, share = shared
-    failures = []
+    out = []
+    for pid, tests in items:
+        solid = piece_solid(refs[pid].mesh, pid)
+        for kind in ("inside", "clear"):
+            group = [(k, order, cyls) for k, order, test_kind, cyls in tests if test_kind == kind]
+            if not group:
+                continue
+            shapes = [(k, order, _test_shape(cyls)) for k, order, cyls in group]
+            if len(shapes) > 1:
+                whole = check_status(Manifold.batch_boolean([s for *_, s in shapes], OpType.Add), "joint check",
+                                     f"the union of piece {pid}'s test cylinders")
+                if _measured(kind, whole, solid) <= min(share * s.volume() for *_, s in shapes):
+                    continue
+            for k, order, shape in shapes:
+                volume = _measured(kind, shape, solid)
+                if volume > share * shape.volume():
+                    out.append((k, order, volume))
+    return out
 
-    def solid(pid):
-        m = piece_solid(refs[pid].mesh, pid)
-        return m if not isinstance(m, str) else None
 
-    for j in joints:
-        pin, hole = j.get("pin_piece"), j.get("hole_piece")
-        c, d = j["center_mm"], j["direction"]
-        r, length, cl = float(j["radius_mm"]), float(j["length_mm"]), float(j.get("clearance_mm", 0.0))
-        a, b = solid(pin), solid(hole)
-        if a is None or b is None:
-            continue
-        name = f"joint {pin} -> {hole}"
-        if j.get("style", "pin") == "dowel":
-            room = _cylinder(c, d, r + 0.5 * cl, -0.9 * length, 0.9 * length)
-            for piece, m in ((pin, a), (hole, b)):
-                hit = (room ^ m).volume()
-                if hit > share * room.volume():
-                    failures.append(f"{name}: the dowel hole in {piece} is blocked ({hit:.3g} mm^3 of material "
-                                    f"within radius {r + 0.5 * cl:.2f} mm)")
-            continue
-        core = _cylinder(c, d, 0.9 * r, 0.1 * length, 0.9 * length)
-        missing = (core - a).volume()
-        if missing > share * core.volume():
-            failures.append(f"{name}: the pin of {pin} is missing ({missing:.3g} mm^3 of its core is not there)")
-        room = _cylinder(c, d, r + 0.5 * cl, 0.05 * length, length)
-        if j.get("shape") == "snap":
-            # the snap hole necks with its pin to 0.9 r past 70% of the length (joint._snap_profile): a plain room
-            # of radius r there would find the neck's wall in the hole piece and fail every snap joint
-            room = _cylinder(c, d, r + 0.5 * cl, 0.05 * length, 0.7 * length) + _cylinder(
-                c, d, 0.9 * r + 0.5 * cl, 0.05 * length, 0.9 * length)
-        hit = (room ^ b).volume()
-        if hit > share * room.volume():
-            failures.append(f"{name}: the pin does not fit its hole in {hole} with clearance {cl:g} mm "
-                            f"({hit:.3g} mm^3 of {hole} within radius {r + 0.5 * cl:.2f} mm of the pin axis)")
-    return failures
+def _test_shape(cylinders):
+    """The union of a test's cylinders (_cylinder's arguments) -> Manifold."""
+    shape = _cylinder(*cylinders[0])
+    for more in cylinders[1:]:
+        shape = boolean(shape, _cylinder(*more), "union", "joint check")
+    return shape
+
+
+def _measured(kind, shape, solid):
+    """mm^3 of shape outside solid (kind "inside") or inside it ("clear")."""
+    op = "difference" if kind == "inside" else "intersection"
+    return float(boolean(shape, solid, op, "joint check").volume())
 
 
 def check_joint_graph(report: dict):
