@@ -404,8 +404,11 @@ def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=No
     lim = np.maximum(terms["mx"] * (2.0 / aspect), terms["my2"])
     lim[terms["mout"]] = np.inf
     height = np.minimum(height, lim.min(axis=0))
-    return _refined(height, low, float(alive_min), ko["idx"], pts, pad, lo, hi, right, up, normal, xr, xu, xn,
-                    2.0 / aspect)
+    # C-ordered arrays always: the kernel is compiled for those types alone (precompile.KERNELS), and a column
+    # subset of the terms (_terms_at) comes out in Fortran order
+    arrays = (np.ascontiguousarray(a) for a in (low, ko["idx"], pts, pad, lo, hi, right, up, normal, xr, xu, xn))
+    low, idx, pts, pad, lo, hi, right, up, normal, xr, xu, xn = arrays
+    return _refined(height, low, float(alive_min), idx, pts, pad, lo, hi, right, up, normal, xr, xu, xn, 2.0 / aspect)
 
 
 @njit(cache=True, nogil=True)
