@@ -144,6 +144,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     """The whole `volpuzzle build`. Returns the report dict; raises VolpuzzleError on any expected failure."""
     t_start = time.perf_counter()  # the total includes loading the geometry libraries, which the user waits for too
     from .export import check_target, spec_inputs
+    from .precompile import start as compile_ahead
     from .spec import load_spec, with_overrides
     from .workers import start as start_workers
 
@@ -156,6 +157,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     jobs = jobs or os.cpu_count() or 1
     # started first, so that the workers' start-up runs on the other cores while this process loads and plans
     workers = start_workers(jobs, math.prod(spec.grid))
+    compile_ahead()  # on a new machine, the later stages' kernels compile on another core meanwhile
     try:
         return _build(spec, target, jobs, force, progress, workers, t_start)
     finally:

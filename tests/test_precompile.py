@@ -1,0 +1,96 @@
+"""The compiling child of a first build (volpuzzle.precompile): its signatures are the ones a build calls with, so a
+build after it loads each of its kernels from numba's cache; it starts only when the cache lacks one of them, on more
+than one core, and a child that cannot start is no error."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from conftest import REPO
+from helpers_build import example_spec
+
+from volpuzzle import precompile
+from volpuzzle.pipeline import build
+
+
+def _builds_only_declared_signatures(spec) -> set:
+    """Build spec -> the names of the kernels first compiled by it, having checked that every kernel of KERNELS was
+    only ever compiled in this process for its declared types."""
+    before = {name: set(precompile.kernel(m, name).signatures) for m, name, _ in precompile.KERNELS}
+    build(spec, jobs=1)
+    for module, name, signature in precompile.KERNELS:
+        # nothing else: a kernel compiled for other types than declared would be compiled again by the build
+        assert set(precompile.kernel(module, name).signatures) <= {precompile.argument_types(signature)}, name
+    return {name for m, name, _ in precompile.KERNELS if set(precompile.kernel(m, name).signatures) - before[name]}
+
+
+def test_the_declared_signatures_are_the_ones_a_build_calls_with(tmp_path):
+    _builds_only_declared_signatures(example_spec("quarter-torus", tmp_path, tolerance=0.5))
+    for module, name, signature in precompile.KERNELS:  # the quarter torus calls every one
+        assert precompile.argument_types(signature) in precompile.kernel(module, name).signatures, name
+
+
+# A kernel called with other argument types by the build than by the child is compiled by both at once, and numba's
+# cache index, rewritten without a lock, could then file one's machine code under the other's signature: every kind
+# of model (a mesh in a cage, a shell) must call with the declared types too
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["bunny-cage", "duck"])
+def test_mesh_and_shell_builds_call_with_the_declared_signatures(tmp_path, name):
+    _builds_only_declared_signatures(example_spec(name, tmp_path, tolerance=0.2))
+
+
+def test_no_child_when_the_cache_holds_every_kernel(monkeypatch):
+    monkeypatch.setattr(precompile, "_CHILD", None)
+    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(precompile, "missing", lambda: False)
+    assert precompile.start() is None
+
+
+def test_no_child_on_one_core(monkeypatch):
+    monkeypatch.setattr(precompile, "_CHILD", None)
+    monkeypatch.setattr(precompile, "_cores", lambda: 1)
+    monkeypatch.setattr(precompile, "missing", lambda: True)
+    assert precompile.start() is None
+
+
+def test_a_child_that_cannot_start_is_no_error(monkeypatch, tmp_path):
+    monkeypatch.setattr(precompile, "_CHILD", None)
+    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(precompile, "missing", lambda: True)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-such-python"))
+    assert precompile.start() is None
+    assert precompile.join(0) is None
+
+
+_CHILD_FILLS_THE_CACHE = """
+from volpuzzle import precompile
+assert precompile.missing()
+child = precompile.start()
+assert child is not None
+assert precompile.join(300) == 0
+assert not precompile.missing()
+assert precompile.start() is None
+"""
+
+_BUILD_AND_COUNT = """
+import json, sys
+from volpuzzle import precompile
+from volpuzzle.pipeline import build
+build(sys.argv[1], jobs=1)
+print(json.dumps({name: [sum(precompile.kernel(m, name).stats.cache_hits.values()),
+                         sum(precompile.kernel(m, name).stats.cache_misses.values())]
+                  for m, name, _ in precompile.KERNELS}))
+"""
+
+
+@pytest.mark.slow
+def test_a_build_after_the_child_compiles_none_of_its_kernels(tmp_path):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"), PYTHONPATH=str(REPO))
+    subprocess.run([sys.executable, "-c", _CHILD_FILLS_THE_CACHE], env=env, check=True, timeout=300)
+    spec = example_spec("quarter-torus", tmp_path, tolerance=0.5)
+    out = subprocess.run([sys.executable, "-c", _BUILD_AND_COUNT, str(spec)], env=env, check=True, timeout=300,
+                         capture_output=True, text=True).stdout
+    counts = json.loads(out.strip().splitlines()[-1])
+    assert counts == {name: [1, 0] for _, name, _ in precompile.KERNELS}  # each loaded once, none compiled
