@@ -291,8 +291,9 @@ def main():
         if not args.no_cold:
             env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba-cache"))
             spec = REPO / "specs" / "quarter-torus.yaml"
-            show("quarter torus, empty numba cache (cold)", run_child(spec, env=env))
-            show("quarter torus, the cache it filled (warm)", run_child(spec, env=env))
+            # as `make demo` builds it on a new machine: with the default --jobs (0 here: every core)
+            show("quarter torus, empty numba cache (cold)", run_child(spec, jobs=0, env=env))
+            show("quarter torus, the cache it filled (warm)", run_child(spec, jobs=0, env=env))
         sizes = ([] if args.no_torus else sorted(args.sizes) if args.sizes else [32, 256] if args.quick
                  else [32, 256, 1024])
         results = {}

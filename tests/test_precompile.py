@@ -55,6 +55,17 @@ def test_no_child_on_one_core(monkeypatch):
     assert precompile.start() is None
 
 
+def test_no_child_when_one_process_is_asked_for(monkeypatch):
+    # --jobs 1 (and every build of `volpuzzle batch`, whose cluster spreads the work) keeps to one process
+    monkeypatch.setattr(precompile, "_CHILD", None)
+    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(precompile, "missing", lambda: True)
+    started = []
+    monkeypatch.setattr(precompile.subprocess, "Popen", lambda *a, **_: started.append(a) or "a child")
+    assert precompile.start(1) is None and not started
+    assert precompile.start(2) is not None and len(started) == 1
+
+
 def test_a_child_that_cannot_start_is_no_error(monkeypatch, tmp_path):
     monkeypatch.setattr(precompile, "_CHILD", None)
     monkeypatch.setattr(precompile, "_cores", lambda: 2)

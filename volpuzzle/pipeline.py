@@ -157,7 +157,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     jobs = jobs or os.cpu_count() or 1
     # started first, so that the workers' start-up runs on the other cores while this process loads and plans
     workers = start_workers(jobs, math.prod(spec.grid))
-    compile_ahead()  # on a new machine, the later stages' kernels compile on another core meanwhile
+    compile_ahead(jobs)  # on a new machine, the later stages' kernels compile on another core meanwhile
     try:
         return _build(spec, target, jobs, force, progress, workers, t_start)
     finally:

@@ -54,13 +54,15 @@ def missing() -> bool:
         return False
 
 
-def start():
-    """Start the child when the cache lacks a kernel and no child of ours is still running -> Popen or None. Nothing
-    it does can fail the build: its output goes nowhere and a child that cannot start is simply not there."""
+def start(jobs: int = 2):
+    """Start the child when the cache lacks a kernel, the build may use more than one process (`jobs`, as --jobs
+    gives it) and no child of ours is still running -> Popen or None. Nothing it does can fail the build: its output
+    goes nowhere and a child that cannot start is simply not there."""
     global _CHILD
-    if (_CHILD is not None and _CHILD.poll() is None) or _cores() < 2 or os.environ.get("NUMBA_DISABLE_JIT") == "1" \
-            or not missing():
-        return None  # on one core the child would only take turns with the build
+    if jobs < 2 or _cores() < 2:
+        return None  # one process asked for; on one core the child would only take turns with the build
+    if (_CHILD is not None and _CHILD.poll() is None) or os.environ.get("NUMBA_DISABLE_JIT") == "1" or not missing():
+        return None
     root = str(Path(__file__).resolve().parent.parent)
     try:
         _CHILD = subprocess.Popen(
