@@ -1,6 +1,7 @@
 """label: the id's outlines (holes right), the site (inner face, jointless first, clear of joints), and the engraving
 (one closed solid, the expected volume, only near the chosen face, >= 0.4 mm deep also on a curved face)."""
 
+import dataclasses
 import time
 from functools import cache
 
@@ -424,3 +425,17 @@ def test_heights_kept_for_a_coarser_stroke_give_the_finer_strokes_sites():
     # the long text fits only with the finest stroke: its sites are centres measured again below the coarse floor
     assert found["p0-0-0", L.MIN_STROKE_MM] > 0
     assert found["p0-0-0-0-0-0-0", L.MIN_STROKE_MM] == 0 and found["p0-0-0-0-0-0-0", L.HAIR_STROKE_MM] > 0
+
+
+def test_a_label_keeps_clear_of_a_snap_pin_where_it_swells():
+    # the keep-out round a joint's axis is the pin's widest radius as the joint module gives it (a snap pin swells),
+    # its clearance and the text's own wall
+    vol = _box_model()
+    tiling = tile(vol, (2, 2, 2))
+    joint = J.plan_joints(tiling, Map(vol))[0]
+    for shape in ("cylinder", "snap"):
+        j = dataclasses.replace(joint, shape=shape)
+        _, radii = L._joint_axes(tuple(j.pin_cell), [j])
+        want = J.outer_radius(j.radius, shape) + j.clearance + L.JOINT_CLEAR_MM
+        assert np.allclose(radii, want)
+    assert J.outer_radius(1.0, "snap") > J.outer_radius(1.0, "cylinder")

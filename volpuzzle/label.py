@@ -32,6 +32,7 @@ from numba import njit
 
 from .errors import GeometryError
 from .geometry import is_ok
+from .joint import outer_radius
 
 DEPTH_MM = 0.4
 MIN_STROKE_MM = 0.8  # narrowest stem a 0.4 mm nozzle prints as two lines
@@ -280,8 +281,7 @@ def _joint_axes(cell_index, joints):
     for j in joints or ():
         if tuple(j.pin_cell) != cell_index and tuple(j.hole_cell) != cell_index:
             continue
-        swell = 1.15 if getattr(j, "shape", "cylinder") == "snap" else 1.0
-        r = float(j.radius) * swell + float(j.clearance) + JOINT_CLEAR_MM
+        r = outer_radius(float(j.radius), getattr(j, "shape", "cylinder")) + float(j.clearance) + JOINT_CLEAR_MM
         base = float(getattr(j, "base_depth", 0.0) or 0.0)
         reach = float(j.length) + float(getattr(j, "axial_clearance", 0.0)) + base + 1.0
         t = np.linspace(-reach, reach, int(np.ceil(2 * reach / 0.25)) + 1)
