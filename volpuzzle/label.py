@@ -379,8 +379,9 @@ def _centre_terms(ko, x0, normal, right, up):
 
 
 def _terms_at(terms, at):
-    """_centre_terms of the centres `at` (indices) only."""
-    return {key: (v[at] if v.ndim == 1 else v[:, at]) for key, v in terms.items()}
+    """_centre_terms of the centres `at` (indices) only, C-ordered as _centre_terms gives them: a column subset comes
+    out in Fortran order, and _refined is compiled for C-ordered arrays alone (precompile.KERNELS)."""
+    return {key: (v[at] if v.ndim == 1 else np.ascontiguousarray(v[:, at])) for key, v in terms.items()}
 
 
 def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=None):
@@ -404,11 +405,8 @@ def _heights_allowed(ko, x0, normal, right, up, aspect, cap, alive_min, terms=No
     lim = np.maximum(terms["mx"] * (2.0 / aspect), terms["my2"])
     lim[terms["mout"]] = np.inf
     height = np.minimum(height, lim.min(axis=0))
-    # C-ordered arrays always: the kernel is compiled for those types alone (precompile.KERNELS), and a column
-    # subset of the terms (_terms_at) comes out in Fortran order
-    arrays = (np.ascontiguousarray(a) for a in (low, ko["idx"], pts, pad, lo, hi, right, up, normal, xr, xu, xn))
-    low, idx, pts, pad, lo, hi, right, up, normal, xr, xu, xn = arrays
-    return _refined(height, low, float(alive_min), idx, pts, pad, lo, hi, right, up, normal, xr, xu, xn, 2.0 / aspect)
+    return _refined(height, low, float(alive_min), ko["idx"], pts, pad, lo, hi, right, up, normal, xr, xu, xn,
+                    2.0 / aspect)
 
 
 @njit(cache=True, nogil=True)
