@@ -11,7 +11,7 @@ import pytest
 from conftest import REPO
 from helpers_build import example_spec
 
-from volpuzzle import precompile
+from volpuzzle import precompile, workers
 from volpuzzle.pipeline import build
 
 
@@ -43,14 +43,14 @@ def test_mesh_and_shell_builds_call_with_the_declared_signatures(tmp_path, name)
 
 def test_no_child_when_the_cache_holds_every_kernel(monkeypatch):
     monkeypatch.setattr(precompile, "_CHILD", None)
-    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 2)
     monkeypatch.setattr(precompile, "missing", lambda: False)
     assert precompile.start() is None
 
 
 def test_no_child_on_one_core(monkeypatch):
     monkeypatch.setattr(precompile, "_CHILD", None)
-    monkeypatch.setattr(precompile, "_cores", lambda: 1)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 1)
     monkeypatch.setattr(precompile, "missing", lambda: True)
     assert precompile.start() is None
 
@@ -58,7 +58,7 @@ def test_no_child_on_one_core(monkeypatch):
 def test_no_child_when_one_process_is_asked_for(monkeypatch):
     # --jobs 1 (and every build of `volpuzzle batch`, whose cluster spreads the work) keeps to one process
     monkeypatch.setattr(precompile, "_CHILD", None)
-    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 2)
     monkeypatch.setattr(precompile, "missing", lambda: True)
     started = []
     monkeypatch.setattr(precompile.subprocess, "Popen", lambda *a, **_: started.append(a) or "a child")
@@ -68,7 +68,7 @@ def test_no_child_when_one_process_is_asked_for(monkeypatch):
 
 def test_a_child_that_cannot_start_is_no_error(monkeypatch, tmp_path):
     monkeypatch.setattr(precompile, "_CHILD", None)
-    monkeypatch.setattr(precompile, "_cores", lambda: 2)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 2)
     monkeypatch.setattr(precompile, "missing", lambda: True)
     monkeypatch.setattr(sys, "executable", str(tmp_path / "no-such-python"))
     assert precompile.start() is None

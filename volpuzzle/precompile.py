@@ -59,7 +59,9 @@ def start(jobs: int = 2):
     gives it) and no child of ours is still running -> Popen or None. Nothing it does can fail the build: its output
     goes nowhere and a child that cannot start is simply not there."""
     global _CHILD
-    if jobs < 2 or _cores() < 2:
+    from .workers import usable_cores
+
+    if jobs < 2 or usable_cores() < 2:
         return None  # one process asked for; on one core the child would only take turns with the build
     if (_CHILD is not None and _CHILD.poll() is None) or os.environ.get("NUMBA_DISABLE_JIT") == "1" or not missing():
         return None
@@ -83,10 +85,6 @@ def join(timeout=None) -> int | None:
         return _CHILD.wait(timeout)
     except subprocess.TimeoutExpired:
         return None
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def main():

@@ -43,6 +43,11 @@ _MAIN_TAKES_ITEMS = True  # False: the workers run every item (tests use it to s
 _QUEUED_PER_WORKER = 2  # one running, one waiting, so that a worker never idles while this process is busy
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the system tells it, else every core)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def wanted(jobs: int | None, pieces: int) -> bool:
     """Whether a build of `pieces` pieces with `jobs` processes starts a pool: more than one job, enough pieces for
     the start-up to pay, and not inside a daemonic process (a Dask worker), which may not start children."""

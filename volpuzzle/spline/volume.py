@@ -37,7 +37,9 @@ def _threads():
     threads keep to theirs) or on one core. A forked child makes its own: threads do not survive a fork."""
     if threading.current_thread() is not threading.main_thread():
         return None
-    workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    from ..workers import usable_cores
+
+    workers = usable_cores()
     if workers < 2:
         return None
     pid = os.getpid()
