@@ -106,6 +106,47 @@ def test_inverted_and_split_bodies_are_named():
     assert closed_problem(box) is None
 
 
+def _trimesh_verdict(mesh):
+    """closed_problem's own trimesh route: what the fast path must agree with."""
+    m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True, validate=False)
+    return m.is_watertight and m.is_winding_consistent and m.body_count == 1 and m.volume > 0
+
+
+def _broken(kind):
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    v, f = sphere.vertices.copy(), sphere.faces.copy()
+    if kind == "open":
+        f = f[1:]
+    elif kind == "inverted":
+        f = f[:, ::-1]
+    elif kind == "one flipped":
+        f[7] = f[7, ::-1]
+    elif kind == "two bodies":
+        v, f = np.concatenate([v, v + 20.0]), np.concatenate([f, f + len(v)])
+    elif kind == "unwelded":  # as an STL reads: every triangle its own three vertices, the same solid once merged
+        v, f = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
+    elif kind == "a stray vertex":
+        v = np.concatenate([v, [[50.0, 0.0, 0.0]]])
+    elif kind == "a repeated vertex":
+        f[3, 1] = f[3, 0]
+    elif kind == "a doubled triangle":
+        f = np.concatenate([f, f[:1]])
+    return trimesh.Trimesh(v, f, process=False)
+
+
+@pytest.mark.parametrize("kind", ["closed", "open", "inverted", "one flipped", "two bodies", "unwelded",
+                                  "a stray vertex", "a repeated vertex", "a doubled triangle"])
+def test_the_quick_closed_test_never_passes_what_trimesh_refuses(kind):
+    from volpuzzle.check import _plainly_closed
+
+    mesh = _broken(kind)
+    quick = _plainly_closed(mesh.vertices, mesh.faces)
+    # the quick test may only say yes where trimesh does; a no sends the mesh to trimesh for the reason
+    assert not quick or _trimesh_verdict(mesh)
+    assert quick == (kind == "closed")
+    assert (closed_problem(mesh) is None) == _trimesh_verdict(mesh)
+
+
 @settings(max_examples=10, deadline=None)
 @given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-50, 50), st.floats(0.5, 20))
 def test_signed_volume_of_a_moved_box(x, y, z, s):
@@ -185,6 +226,61 @@ def test_face_gaps_after_a_touching_pair_keep_the_least_gap_and_its_pair():
     # without the touching pair every gap is the engine's
     del meshes["p0"]
     assert [g[3] for g in _face_gaps(meshes, 0.3)] == pytest.approx([0.1, 0.2], abs=1e-9)
+
+
+def test_pieces_the_face_gaps_find_apart_skip_their_overlap_boolean():
+    from volpuzzle.check import neighbour_gaps, pairs_apart
+
+    import manifold3d as m3
+
+    def block(lo, hi):
+        return m3.Manifold.cube(tuple(np.subtract(hi, lo))).translate(tuple(lo))
+
+    def mesh(solid):
+        out = solid.to_mesh()
+        return trimesh.Trimesh(out.vert_properties[:, :3], out.tri_verts).subdivide().subdivide().subdivide()
+
+    # a stepped cut, 0.1 mm apart: the boxes share 1.9 x 10 x 10 mm, so only a Boolean or the gap tells them apart
+    a = block((10, -5, -5), (20, 5, 5)) + block((19, 0, -5), (22, 5, 5))
+    b = block((20.1, -5, -5), (30, -0.1, 5)) + block((22.1, -0.2, -5), (30, 5, 5))
+    meshes = {"p1": mesh(a), "p2": mesh(b)}
+    gaps = neighbour_gaps(meshes, 0.3)
+    assert [g[:2] for g in gaps] == [("p1", "p2")] and gaps[0][3] == pytest.approx(0.1, abs=1e-6)
+    apart = pairs_apart(gaps, meshes)
+    assert apart == {frozenset(("p1", "p2"))}
+    pieces = sorted(meshes.items())
+    volume = float(a.volume() + b.volume())
+    plain, quick = check_pieces(pieces, volume), check_pieces(pieces, volume, apart=apart)
+    assert quick["overlap_pairs_apart"] == 1 and plain["overlap_pairs_apart"] == 0
+    assert quick["overlap_pairs_tested"] == plain["overlap_pairs_tested"] == 1
+    assert quick["max_overlap_mm3"] == plain["max_overlap_mm3"] == 0.0 and quick["passed"]
+
+
+def test_a_touching_pair_ends_what_the_face_gaps_prove():
+    from volpuzzle.check import neighbour_gaps, pairs_apart
+
+    # from the first pair that touches on, the gaps are the closest vertices', which prove nothing
+    meshes = {"p0": _slab(0, 10), "p1": _slab(10, 20), "p2": _slab(20.1, 30)}
+    assert pairs_apart(neighbour_gaps(meshes, 0.3), meshes) == frozenset()
+    # nor is a gap the engine could not measure (NaN) a proof
+    assert pairs_apart([("p1", "p2", 0.1, float("nan"))], meshes) == frozenset()
+
+
+def test_a_piece_inside_another_is_not_proved_apart_by_its_gap():
+    from volpuzzle.check import neighbour_gaps, pairs_apart
+
+    # p1 lies inside p0, 0.1 mm under its face: their surfaces never meet, yet they overlap by all of p1
+    p0 = _slab(0, 10)
+    p1 = trimesh.creation.box([4, 4, 4]).subdivide().subdivide().subdivide().apply_translation([7.9, 0, 0])
+    meshes = {"p0": p0, "p1": p1}
+    gaps = neighbour_gaps(meshes, 0.3)
+    assert [g[:2] for g in gaps] == [("p0", "p1")]
+    assert pairs_apart(gaps, meshes) == frozenset()
+    # the engine says 0 here itself; a gap above 0 would not pass either, p1's box being inside p0's
+    assert pairs_apart([("p0", "p1", 0.1, 0.1)], meshes) == frozenset()
+    assert pairs_apart([("p0", "p1", 0.1, 0.1)], {"p0": p0, "p1": p1.copy().apply_translation([5, 0, 0])})
+    checks = check_pieces(sorted(meshes.items()), 1064.0, apart=pairs_apart(gaps, meshes))
+    assert checks["max_overlap_mm3"] == pytest.approx(64.0, abs=1.0) and not checks["passed"]
 
 
 def test_face_gaps_engine_gap_is_the_whole_reach_gap_where_no_vertices_face_each_other():

@@ -22,7 +22,7 @@ from .geometry import memo as _memo
 __all__ = ["check_pieces", "closed_problem", "signed_volume", "overlap_volume", "shifted_overlap",
            "candidate_pairs", "failure_message", "assert_passed", "check_directory", "piece_solid",
            "check_joint_graph", "check_printability", "piece_bed_contact", "bed_contact_problem", "pin_fit",
-           "fit_line"]
+           "fit_line", "neighbour_gaps", "report_face_gaps", "pairs_apart"]
 
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -50,6 +50,8 @@ def remember_closed(mesh: trimesh.Trimesh, problem) -> None:
 def _closed_problem(mesh):
     if len(mesh.faces) == 0:
         return "no triangles"
+    if _plainly_closed(np.asarray(mesh.vertices), np.asarray(mesh.faces)):
+        return None
     # Merge coincident vertices first: what a reader of the STL sees is the welded mesh.
     m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True, validate=False)
     if not m.is_watertight:
@@ -64,6 +66,39 @@ def _closed_problem(mesh):
     if not vol > 0:
         return f"volume {vol:.6g} mm^3 is not positive (normals point inwards)"
     return None
+
+
+def _plainly_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """True when vertices (n, 3) and faces (m, 3) are a closed solid just as they are: every vertex used and none
+    that trimesh's merge would join to another, no triangle repeating a vertex, every directed edge once and its
+    reverse once (watertight and consistently wound), one connected body, positive volume. Then _closed_problem's
+    trimesh route (~5 ms a piece, a third of the check at 1024 pieces) would find nothing; False only means: ask it,
+    for what is wrong."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, dtype=np.int64)
+    n = len(vertices)
+    if f.ndim != 2 or f.shape[1] != 3 or n == 0 or f.min() < 0 or f.max() >= n:
+        return False
+    if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])):
+        return False
+    used = np.zeros(n, dtype=bool)
+    used[f.ravel()] = True
+    if not used.all() or not np.all(np.isfinite(vertices)):
+        return False
+    # the very rounding trimesh merges vertices by (tol.merge): no two vertices may share it
+    if len(trimesh.grouping.unique_rows(vertices, digits=trimesh.util.decimal_to_digits(trimesh.tol.merge))[0]) != n:
+        return False
+    a = f.ravel()
+    b = f[:, [1, 2, 0]].ravel()
+    edge, back = np.sort(a * n + b), np.sort(b * n + a)
+    if np.any(edge[1:] == edge[:-1]) or not np.array_equal(edge, back):
+        return False
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+    if connected_components(graph, directed=False, return_labels=False) != 1:
+        return False
+    return signed_volume(vertices, f) > 0
 
 
 def piece_solid(mesh: trimesh.Trimesh, pid: str):
@@ -157,15 +192,16 @@ def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: i
 
 def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
                  volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3,
-                 exact_overlaps: bool = False, workers=None) -> dict:
+                 exact_overlaps: bool = False, workers=None, apart=frozenset()) -> dict:
     """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
 
     Keys: all_closed, closed_failures (ids), volume_sum_mm3, expected_volume_mm3, volume_error (relative,
     signed), volume_tolerance, max_overlap_mm3, max_overlap_pair, overlap_limit_mm3 (overlap_fraction of the
-    smallest piece's volume), overlap_error_bound_mm3, overlap_pairs_tested, overlap_time_s, failures
-    (sentences), passed. Overlaps are measured for pairs whose boxes share more than the limit, with one
-    piece shifted by a hair (see shifted_overlap; error bound 1% of the limit) unless exact_overlaps. workers: a
-    volpuzzle.workers.Workers that measures some of the pairs (the same figures).
+    smallest piece's volume), overlap_error_bound_mm3, overlap_pairs_tested, overlap_pairs_apart (of those, the
+    ones `apart` settled), overlap_time_s, failures (sentences), passed. Overlaps are measured for pairs whose boxes
+    share more than the limit, with one piece shifted by a hair (see shifted_overlap; error bound 1% of the limit)
+    unless exact_overlaps. apart: pairs of ids (frozensets) already proved disjoint (pairs_apart), which overlap by
+    0 without a Boolean. workers: a volpuzzle.workers.Workers that measures some of the pairs (the same figures).
     """
     ids = [str(p[0]) for p in pieces]
     meshes = [p[1] for p in pieces]
@@ -188,13 +224,17 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
     good = [k for k, pid in enumerate(ids) if pid not in set(closed_failures)]
     limit = overlap_fraction * float(volumes[good].min()) if good else 0.0
     t0 = time.perf_counter()
-    max_overlap, max_pair, tested, max_bound = 0.0, [], 0, 0.0
+    max_overlap, max_pair, tested, max_bound, settled = 0.0, [], 0, 0.0, 0
     if len(good) > 1:
         bounds = np.array([meshes[k].bounds for k in good])
         pairs = candidate_pairs(bounds, min_common_volume=limit)
         solids = {}
         measured = []
         for a, b in pairs:
+            if frozenset((ids[good[a]], ids[good[b]])) in apart:
+                tested += 1
+                settled += 1
+                continue
             for k in (a, b):
                 if k not in solids:
                     solids[k] = piece_solid(meshes[good[k]], ids[good[k]])
@@ -228,6 +268,7 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
         "overlap_limit_mm3": limit,
         "overlap_error_bound_mm3": max_bound,
         "overlap_pairs_tested": tested,
+        "overlap_pairs_apart": settled,
         "overlap_time_s": round(overlap_time, 4),
         "failures": failures,
         "passed": not failures,
@@ -679,12 +720,13 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
             pieces.append((pid, _load_mesh(path, data)))
         except VolpuzzleError as err:
             failures.append(str(err))
-    checks = check_pieces(pieces, expected, volume_tolerance=tolerance)
+    gaps = report_face_gaps(report, dict(pieces))
+    checks = check_pieces(pieces, expected, volume_tolerance=tolerance, apart=pairs_apart(gaps, dict(pieces)))
     checks["missing_files"] = missing
     joint_failures = check_joints(dict(pieces), joints)
     checks["joints_checked"] = len(joints)
     graph_failures, checks["joint_graph"] = check_joint_graph(report)
-    checks["printability"] = check_printability(report, dict(pieces))
+    checks["printability"] = check_printability(report, dict(pieces), gaps=gaps)
     checks["printability"]["warnings"] += _unlisted_piece_files(directory, entries)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
                           + joint_failures + graph_failures + checks["printability"]["failures"]
@@ -810,14 +852,14 @@ def bed_contact_problem(under) -> str:
     return f"pieces {', '.join(under)} rest on less than {BED_MIN_MM2:g} mm^2 of the bed"
 
 
-def check_printability(report: dict, meshes: dict, workers=None) -> dict:
+def check_printability(report: dict, meshes: dict, workers=None, gaps=None) -> dict:
     """Printability from the files: bed contact of each piece in its print orientation (report.json pieces[].print
     .plate_transform applied to the piece file), the gap between neighbouring pieces (at least the face clearance,
     less what the joints' own clearances allow), pin sizes against the printable minimum, a label per piece.
     meshes: {piece id: closed trimesh in mm}. -> {"bed_contact_mm2": {id: mm^2}, "min_bed_contact_mm2",
     "pieces_under_bed_minimum", "min_face_gap_mm", "face_gap_pair", "unlabelled", "pins_up", "pins",
     "failures": [sentences], "warnings": [sentences]}. workers: a volpuzzle.workers.Workers that measures some of
-    the face gaps (the same figures)."""
+    the face gaps (the same figures); gaps: report_face_gaps(report, meshes), when already measured."""
     failures, warnings = [], []
     entries = {e.get("id"): e for e in report.get("pieces") or []}
     contact, under = {}, []
@@ -840,10 +882,7 @@ def check_printability(report: dict, meshes: dict, workers=None) -> dict:
     labels_on = (report.get("spec") or {}).get("output", {}).get("labels", True)
     if labels_on and unlabelled:
         warnings.append(f"pieces {', '.join(unlabelled)} carry no label")
-    spec_out = (report.get("spec") or {}).get("output") or {}
-    # the clearance the build applied (none with joints.space: domain), else the spec's
-    face_clearance = float((report.get("checks") or {}).get("face_clearance_mm", spec_out.get("face_clearance", 0.0))
-                           or 0.0)
+    face_clearance = _report_face_clearance(report)
     joints = report.get("joints") or []
     thin = [j for j in joints if pin_fit(j.get("style", "pin"), float(j.get("radius_mm", 0)),
                                          float(j.get("length_mm", 0)), 0, 0, 0)["warnings"]]
@@ -855,7 +894,8 @@ def check_printability(report: dict, meshes: dict, workers=None) -> dict:
                         f"{thin[0].get('hole_piece')}) have pins below the printable minimum (radius down to {r:g} "
                         f"mm, length down to {length:g} mm; expected at least {PIN_MIN_RADIUS_MM:g} and "
                         f"{PIN_MIN_LENGTH_MM:g} mm)")
-    gaps = _face_gaps(meshes, face_clearance, _shared_faces(report), workers) if face_clearance > 0 else []
+    if gaps is None:
+        gaps = report_face_gaps(report, meshes, workers)
     closed = [g for g in gaps if g[2] < 0.7 * face_clearance]
     if closed:
         g = min(closed, key=lambda x: x[2])
@@ -890,6 +930,41 @@ def least_face_gap(face_clearance, joints=(), tolerance=None):
     clearance = min([face_clearance] + radial)
     allow = 0.25 * clearance if tolerance is None else min(float(tolerance), 0.25 * clearance)
     return clearance - allow
+
+
+def _report_face_clearance(report):
+    """mm of face clearance the build applied by report.json (none with joints.space: domain), else the spec's."""
+    spec_out = (report.get("spec") or {}).get("output") or {}
+    return float((report.get("checks") or {}).get("face_clearance_mm", spec_out.get("face_clearance", 0.0)) or 0.0)
+
+
+def report_face_gaps(report: dict, meshes: dict, workers=None) -> list:
+    """The face gaps check_printability judges, for the face clearance and contacts report.json gives ->
+    neighbour_gaps."""
+    return neighbour_gaps(meshes, _report_face_clearance(report), report.get("contacts"), workers)
+
+
+def neighbour_gaps(meshes: dict, face_clearance: float, contacts=None, workers=None) -> list:
+    """[(id, id, median gap, smallest gap) mm] of the neighbours that share a cut face (by contacts, report.json's
+    records; any neighbours when None), none without a face clearance (see _face_gaps). meshes: {id: trimesh}."""
+    if not face_clearance > 0:
+        return []
+    return _face_gaps(meshes, face_clearance, _shared_faces({"contacts": contacts}), workers)
+
+
+def pairs_apart(gaps, meshes: dict) -> frozenset:
+    """Pairs of ids (frozensets) that neighbour_gaps proved disjoint, so that the overlap check needs no Boolean for
+    them: the engine found their surfaces apart (a gap above 0), and neither box holds the other. Two connected
+    solids whose surfaces never meet either lie apart or one lies inside the other, and then so does its box. Only
+    the gaps before the first touching pair are the engine's (_face_gaps); none after it counts."""
+    out = set()
+    for a, b, _median, smallest in gaps:
+        if not smallest > 0.0:  # touching (or not measured: NaN): the closest vertices stand for the rest
+            break
+        (alo, ahi), (blo, bhi) = meshes[a].bounds, meshes[b].bounds
+        if not ((np.all(alo >= blo) and np.all(ahi <= bhi)) or (np.all(blo >= alo) and np.all(bhi <= ahi))):
+            out.add(frozenset((a, b)))
+    return frozenset(out)
 
 
 def _shared_faces(report):

@@ -53,6 +53,7 @@ class Stages:
     face_clearance: float = 0.0  # mm, the gap between mating cut faces actually applied
     mesh_report: dict | None = None  # mesh mode: meshcut.compose_in_mesh's report
     sampling: Prefetch | None = None  # of compose's Sampling at output.tolerance (begun while joints plan)
+    face_gaps: list = field(default_factory=list)  # check.neighbour_gaps of the pieces, for check_printability
 
 
 def prepare(spec, timer=None, progress=None, workers=None):
@@ -201,7 +202,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
         # labels) is judged before it is written, so a build never passes what its own check refuses
         report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces},
-                                                               workers=workers)
+                                                               workers=workers, gaps=s.face_gaps)
     require_printable(spec, report)
     forget(p.mesh for p in s.pieces)  # from here on the pieces are only written and drawn
     with timer("export", progress):
@@ -241,7 +242,8 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
         s = dataclasses.replace(s, joints=joints, plan=plan)
         gaps = sum(gap_volume(j) for j in joints)
         face_gaps = mesh_report.pop("face_clearance_mm3", 0.0)
-        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress, workers)
+        done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, clearance, timer, progress,
+                       workers)
     else:
         gaps = sum(gap_volume(j) for j in s.joints)
         for attempt in range(3):
@@ -253,8 +255,8 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
                                  sampling=ahead, face_clearance=clearance, workers=workers)
             sampling = pieces.sampling  # the finishing stages return plain lists
             face_gaps = face_clearance_volume(sampling, clearance)
-            done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, timer, progress,
-                           workers)
+            done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, clearance, timer,
+                           progress, workers)
             checks = done.checks
             deficit_only = (checks["all_closed"] and checks["max_overlap_mm3"] <= checks["overlap_limit_mm3"]
                             and checks["volume_error"] < -0.005)
@@ -274,11 +276,11 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
     return dataclasses.replace(done, tolerance=tolerance, face_clearance=clearance, mesh_report=mesh_report)
 
 
-def _finish(spec, s, pieces, expected, timer, progress, workers=None):
+def _finish(spec, s, pieces, expected, clearance, timer, progress, workers=None):
     """Print orientations, labels (off the bed side), base cuts, the float32 form the files store, and the build's
-    own checks on exactly that -> Stages with pieces, poses, labels, checks. expected: mm^3 the pieces add up to
-    before labels and base cuts take theirs."""
-    from .check import check_joints, check_pieces
+    own checks on exactly that -> Stages with pieces, poses, labels, checks, face gaps. expected: mm^3 the pieces add
+    up to before labels and base cuts take theirs; clearance: the face clearance applied, mm."""
+    from .check import check_joints, check_pieces, neighbour_gaps, pairs_apart
     from .export import printable
     from .label import bed_labels, label_pieces
     from .layout import base_cuts, plan_poses
@@ -298,15 +300,19 @@ def _finish(spec, s, pieces, expected, timer, progress, workers=None):
         engraved += more
     with timer("check", progress):
         pieces = _replaced(pieces, printable(pieces, workers=workers))[0]
-        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers)
+        meshes = {p.id: p.mesh for p in pieces}
+        # the face gaps first: a pair whose surfaces they find apart needs no overlap Boolean (pairs_apart)
+        gaps = neighbour_gaps(meshes, clearance, s.contacts, workers=workers)
+        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers,
+                              apart=pairs_apart(gaps, meshes))
         # every pin in its hole on the pieces as written, as `volpuzzle check` judges them: a label, a base cut or
         # the float32 rounding after the joints were cut must not pass here and fail there
-        joint_failures = check_joints({p.id: p.mesh for p in pieces}, [j.to_report() for j in s.joints],
-                                      workers=workers)
+        joint_failures = check_joints(meshes, [j.to_report() for j in s.joints], workers=workers)
         checks["failures"] = checks["failures"] + joint_failures
         checks["passed"] = checks["passed"] and not joint_failures
     checks["base_cuts_mm3"] = round(cut, 3)
-    return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks)
+    return dataclasses.replace(s, pieces=pieces, poses=poses, labels=labels, engraved_mm3=engraved, checks=checks,
+                               face_gaps=gaps)
 
 
 def _replaced(old, new, *rest):
