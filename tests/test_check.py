@@ -229,9 +229,9 @@ def test_face_gaps_after_a_touching_pair_keep_the_least_gap_and_its_pair():
 
 
 def test_pieces_the_face_gaps_find_apart_skip_their_overlap_boolean():
-    from volpuzzle.check import neighbour_gaps, pairs_apart
-
     import manifold3d as m3
+
+    from volpuzzle.check import neighbour_gaps, pairs_apart
 
     def block(lo, hi):
         return m3.Manifold.cube(tuple(np.subtract(hi, lo))).translate(tuple(lo))
