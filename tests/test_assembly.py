@@ -161,7 +161,7 @@ def test_with_joints_lists_the_placed_faces():
 
 
 @cache
-def _built(name, all_faces=False, tilt_deg=0.0):
+def _built(name, all_faces=False, tilt_deg=0.0, face_clearance=0.0):
     if name == "bent":
         vol, grid = _bent(), (2, 2, 2)
         fmap = _map(vol, _warp())
@@ -177,7 +177,7 @@ def _built(name, all_faces=False, tilt_deg=0.0):
     plan = A.with_joints(plan, t, joints)
     if tilt_deg:
         joints = [_tilted(j, k, tilt_deg) for k, j in enumerate(joints)]
-    pieces = C.compose(t, fmap, joints, 1.0)
+    pieces = C.compose(t, fmap, joints, 1.0, face_clearance=face_clearance)
     return t, plan, joints, {p.id: p.mesh for p in pieces}
 
 
@@ -328,20 +328,43 @@ def test_a_collision_halfway_along_the_sweep_is_caught():
     assert ok
 
 
+def test_pairs_the_face_gaps_prove_apart_are_not_measured_over_their_first_gap():
+    from volpuzzle.check import neighbour_gaps, pairs_apart
+
+    _, plan, joints, pieces = _built("ring", face_clearance=0.3)
+    apart = pairs_apart(neighbour_gaps(pieces, 0.3), pieces)
+    assert len(apart) >= 16 and all(g > 0.1 for g in apart.values())  # a pin stands 0.15 from its hole
+    plain = A.verify_disassembly(pieces, joints, plan)
+    quick = A.verify_disassembly(pieces, joints, plan, apart=apart)
+    _assert_comes_apart(quick, list(pieces))
+    for key in ("assembly_order", "steps", "welded", "stuck"):
+        assert quick[key] == plain[key], key
+    # the first sample (0.05 mm of travel) of every such pair is spared
+    assert quick["booleans"] < plain["booleans"]
+    # a sweep into a neighbour is still caught once the travel exceeds the gap
+    scene = A._Scene({k: pieces[k] for k in ("p0-0-0", "p1-0-0")}, apart)
+    into = np.asarray(pieces["p0-0-0"].centroid - pieces["p1-0-0"].centroid)
+    ok, hit = scene.sweep_clear(["p1-0-0"], ["p0-0-0"], into / np.linalg.norm(into), 1.0, 1e-4)
+    assert not ok and hit[2] >= apart[frozenset(("p0-0-0", "p1-0-0"))]
+
+
 def test_a_worker_process_takes_blocks_apart_to_the_same_steps(monkeypatch):
     # the threshold lowered so that the 16-piece ring sends its moving halves to the (started) worker
     import time
 
+    from volpuzzle.check import neighbour_gaps, pairs_apart
     from volpuzzle.workers import Workers
 
-    _, plan, joints, pieces = _built("ring")
-    here = A.verify_disassembly(pieces, joints, plan)
+    # with the face gaps' proofs, which travel with each block to the worker
+    _, plan, joints, pieces = _built("ring", face_clearance=0.3)
+    apart = pairs_apart(neighbour_gaps(pieces, 0.3), pieces)
+    here = A.verify_disassembly(pieces, joints, plan, apart=apart)
     monkeypatch.setattr(A, "_REMOTE_MIN_PIECES", 2)
     with Workers(2) as workers:
         deadline = time.monotonic() + 120
         while not workers.started and time.monotonic() < deadline:
             time.sleep(0.05)
-        pooled = A.verify_disassembly(pieces, joints, plan, workers=workers)
+        pooled = A.verify_disassembly(pieces, joints, plan, workers=workers, apart=apart)
     assert here["blocks_in_workers"] == 0 and pooled["blocks_in_workers"] >= 1
     for key in ("assembly_order", "steps", "welded", "stuck", "booleans"):
         assert pooled[key] == here[key], key

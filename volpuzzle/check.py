@@ -192,7 +192,7 @@ def candidate_pairs(bounds: np.ndarray, min_common_volume: float = 0.0, chunk: i
 
 def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_mm3: float,
                  volume_tolerance: float = 0.005, overlap_fraction: float = 1e-3,
-                 exact_overlaps: bool = False, workers=None, apart=frozenset()) -> dict:
+                 exact_overlaps: bool = False, workers=None, apart=()) -> dict:
     """Check pieces [(id, mesh in mm)] -> the report's "checks" dict.
 
     Keys: all_closed, closed_failures (ids), volume_sum_mm3, expected_volume_mm3, volume_error (relative,
@@ -200,8 +200,9 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
     smallest piece's volume), overlap_error_bound_mm3, overlap_pairs_tested, overlap_pairs_apart (of those, the
     ones `apart` settled), overlap_time_s, failures (sentences), passed. Overlaps are measured for pairs whose boxes
     share more than the limit, with one piece shifted by a hair (see shifted_overlap; error bound 1% of the limit)
-    unless exact_overlaps. apart: pairs of ids (frozensets) already proved disjoint (pairs_apart), which overlap by
-    0 without a Boolean. workers: a volpuzzle.workers.Workers that measures some of the pairs (the same figures).
+    unless exact_overlaps. apart: pairs of ids (frozensets) already proved disjoint (the keys of pairs_apart), which
+    overlap by 0 without a Boolean. workers: a volpuzzle.workers.Workers that measures some of the pairs (the same
+    figures).
     """
     ids = [str(p[0]) for p in pieces]
     meshes = [p[1] for p in pieces]
@@ -952,19 +953,20 @@ def neighbour_gaps(meshes: dict, face_clearance: float, contacts=None, workers=N
     return _face_gaps(meshes, face_clearance, _shared_faces({"contacts": contacts}), workers)
 
 
-def pairs_apart(gaps, meshes: dict) -> frozenset:
-    """Pairs of ids (frozensets) that neighbour_gaps proved disjoint, so that the overlap check needs no Boolean for
-    them: the engine found their surfaces apart (a gap above 0), and neither box holds the other. Two connected
-    solids whose surfaces never meet either lie apart or one lies inside the other, and then so does its box. Only
-    the gaps before the first touching pair are the engine's (_face_gaps); none after it counts."""
-    out = set()
+def pairs_apart(gaps, meshes: dict) -> dict:
+    """{frozenset of two ids: mm their surfaces stand apart at least} of the pairs neighbour_gaps proved disjoint, so
+    that the overlap check needs no Boolean for them (nor the assembly replay over their first gap of travel): the
+    engine found their surfaces apart (a gap above 0), and neither box holds the other. Two connected solids whose
+    surfaces never meet either lie apart or one lies inside the other, and then so does its box. Only the gaps
+    before the first touching pair are the engine's (_face_gaps); none after it counts."""
+    out = {}
     for a, b, _median, smallest in gaps:
         if not smallest > 0.0:  # touching (or not measured: NaN): the closest vertices stand for the rest
             break
         (alo, ahi), (blo, bhi) = meshes[a].bounds, meshes[b].bounds
         if not ((np.all(alo >= blo) and np.all(ahi <= bhi)) or (np.all(blo >= alo) and np.all(bhi <= ahi))):
-            out.add(frozenset((a, b)))
-    return frozenset(out)
+            out[frozenset((a, b))] = float(smallest)
+    return out
 
 
 def _shared_faces(report):

@@ -169,7 +169,7 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
 def _build(spec, target, jobs, force, progress, workers, t_start):
     """build() once the spec is read and the target free: every stage, then the files -> the report dict."""
     from .assembly import replay_assembly
-    from .check import assert_passed, check_printability
+    from .check import assert_passed, check_printability, pairs_apart
     from .export import piece_colors, pin_triangles, write_build
     from .geometry import forget
     from .joint import dowel_parts, require_pieces_joined
@@ -188,7 +188,8 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
-                                   tiling=s.tiling, fmap=s.fmap, workers=workers)
+                                   tiling=s.tiling, fmap=s.fmap, workers=workers,
+                                   apart=pairs_apart(s.face_gaps, {p.id: p.mesh for p in s.pieces}))
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
     texture, texture_report = None, None
     if spec.texture is not None:
