@@ -5,6 +5,8 @@ import manifold3d
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volpuzzle import geometry as G
 from volpuzzle.errors import GeometryError
@@ -166,3 +168,12 @@ def test_a_frame_is_built_with_numpys_cross_products_to_the_bit():
         expect = np.cross(helper, n)
         expect /= np.linalg.norm(expect)
         assert np.array_equal(e1, expect) and np.array_equal(e2, np.cross(n, expect))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), max_size=60))
+def test_unique_pairs_are_numpys_unique_rows(rows):
+    e = np.array(rows, dtype=np.int64).reshape(-1, 2)
+    got, counts = G.unique_pairs(e)
+    want, want_counts = np.unique(e, axis=0, return_counts=True)
+    assert np.array_equal(got, want.reshape(-1, 2)) and np.array_equal(counts, want_counts)

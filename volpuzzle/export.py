@@ -767,7 +767,9 @@ def _printable_problem(piece, problem):
     import trimesh
 
     merged = trimesh.Trimesh(piece.mesh.vertices, piece.mesh.faces, process=True, validate=False)
-    edges, counts = np.unique(merged.edges_sorted, axis=0, return_counts=True)
+    from .geometry import unique_pairs
+
+    edges, counts = unique_pairs(merged.edges_sorted)
     odd = edges[counts != 2]
     where = (" at (" + ", ".join(f"{c:.2f}" for c in merged.vertices[odd[0]].mean(axis=0)) + ") mm"
              if len(odd) else "")

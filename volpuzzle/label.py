@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 
 from .errors import GeometryError
-from .geometry import is_ok
+from .geometry import is_ok, unique_pairs
 from .joint import outer_radius
 
 DEPTH_MM = 0.4
@@ -987,7 +987,7 @@ class _BodyFaces:
         if not len(tris):
             return np.zeros((0, 3)), covered
         edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-        uniq, count = np.unique(edges, axis=0, return_counts=True)
+        uniq, count = unique_pairs(edges)
         border = uniq[count == 1]
         p0, p1 = self.verts[border[:, 0]], self.verts[border[:, 1]]
         steps = np.maximum(1, np.ceil(np.linalg.norm(p1 - p0, axis=1) / _SAMPLE_MM)).astype(np.int64)

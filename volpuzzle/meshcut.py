@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .geometry import check_status, cylinder
+from .geometry import check_status, cylinder, unique_pairs
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
@@ -131,7 +131,7 @@ def contacts(pieces):
         m = meshes[i]
         faces = np.asarray(m.faces)[tri]
         edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-        uniq, count = np.unique(edges, axis=0, return_counts=True)
+        uniq, count = unique_pairs(edges)
         border = uniq[count == 1]
         v = np.asarray(m.vertices)
         out.append(Contact(names[i], names[j], float(m.area_faces[tri].sum()), v[faces], v[border]))
@@ -261,7 +261,7 @@ def _one_manifold_solid(m):
     v32, inverse = np.unique(np.asarray(t.vertices, np.float32), axis=0, return_inverse=True)
     _, f = weld(v32.astype(np.float64), inverse.reshape(-1)[np.asarray(t.faces)], 0.0)
     edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, count = np.unique(edges, axis=0, return_counts=True)
+    _, count = unique_pairs(edges)
     return bool(len(f)) and bool(np.all(count == 2))
 
 

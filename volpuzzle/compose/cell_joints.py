@@ -145,7 +145,7 @@ def _refine(q, xyz, f, mask, evaluate, target):
     q, xyz, f, mask = np.array(q, dtype=float), np.array(xyz, dtype=float), f.copy(), np.array(mask)
     for _ in range(30):
         edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        edges = np.unique(edges, axis=0)
+        edges = geometry.unique_pairs(edges)[0]
         cand = edges[(mask[edges[:, 0]] & mask[edges[:, 1]]) == 0]  # the edges that may bend
         if len(cand) == 0:
             break

@@ -181,7 +181,7 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     pos[cluster] = xyz
     count = on.sum(axis=1)
     e = cluster[np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])]
-    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = geometry.unique_pairs(np.sort(e, axis=1))[0]
     common = on[e[:, 0]] & on[e[:, 1]]
     e, common = e[common.sum(axis=1) >= 2], common[common.sum(axis=1) >= 2]
     single = np.flatnonzero(count == 1)

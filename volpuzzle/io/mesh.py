@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from ..errors import ModelError
+from ..geometry import unique_pairs
 from . import regular_file_problem
 
 EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
@@ -276,13 +277,6 @@ def _near(mesh, edges):
     return "(" + ", ".join(f"{x:.4g}" for x in p) + ")"
 
 
-def _unique_rows(e):
-    """Unique vertex pairs (k, 2) and their counts; integer keys sort ~20x faster than unique(axis=0)."""
-    base = int(e.max()) + 1 if len(e) else 1
-    keys, counts = np.unique(e[:, 0] * base + e[:, 1], return_counts=True)
-    return np.stack([keys // base, keys % base], axis=1), counts
-
-
 def _directed_edges(faces):
     """faces (m, 3) -> (3m, 2) int64: each triangle's edges 01, 12, 20, all first edges first (column copies: a
     gather by column lists cost 2-4x as much at 1.2M faces)."""
@@ -358,7 +352,7 @@ def mesh_problems(mesh):
     many = np.flatnonzero(counts > 2)
     if len(many):
         rows = order[np.concatenate([np.arange(starts[i], starts[i] + counts[i]) for i in many])]
-        duniq, dcount = _unique_rows(directed[rows])
+        duniq, dcount = unique_pairs(directed[rows])
         incons = np.concatenate([incons, duniq[dcount > 1]])
     if len(incons):
         incons = incons[np.argsort(incons[:, 0] * base + incons[:, 1])]  # the message names the least edge
