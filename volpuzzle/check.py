@@ -72,8 +72,8 @@ def _plainly_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """True when vertices (n, 3) and faces (m, 3) are a closed solid just as they are: every vertex used and none
     that trimesh's merge would join to another, no triangle repeating a vertex, every directed edge once and its
     reverse once (watertight and consistently wound), one connected body, positive volume. Then _closed_problem's
-    trimesh route (~5 ms a piece, a third of the check at 1024 pieces) would find nothing; False only means: ask it,
-    for what is wrong."""
+    trimesh route (~5 ms a piece: 6 of the check's 49 CPU s at 1024 pieces) would find nothing; False only means: ask
+    it, for what is wrong."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
