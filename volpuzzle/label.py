@@ -767,8 +767,12 @@ def label_sites(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, stroke=MI
     for rank in range(4 if outer else 2):
         if rank == 2:  # the outer faces are looked at only when no inner face held the text
             n = len(faces)
-            faces += [(2 if hidden else 3, n + k, a, side, False)
-                      for k, (a, side, hidden) in enumerate(_outer_faces(cell, tiling, fmap))]
+            outer_faces = None if measured is None else measured.get("outer faces")
+            if outer_faces is None:  # every text and stroke of label_piece asks the same of the cell
+                outer_faces = _outer_faces(cell, tiling, fmap)
+                if measured is not None:
+                    measured["outer faces"] = outer_faces
+            faces += [(2 if hidden else 3, n + k, a, side, False) for k, (a, side, hidden) in enumerate(outer_faces)]
         found = [(_candidates(cell, fmap, a, side, hj, axes_pts, axes_r, text, depth, order, stroke, rank=rank,
                               region=region, memo=measured), a, side, hj)
                  for r, order, a, side, hj in faces if r == rank]
