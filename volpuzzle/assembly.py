@@ -41,7 +41,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
 from .errors import GeometryError
 from .geometry import is_ok
@@ -855,9 +854,9 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
 
 
 def _replay_block(meshes, joints, plan, limit_frac, fine, max_tries, groups, block, apart=None):
-    """take_apart of one block in a worker process -> (steps, stuck ids, Booleans). meshes: {id: (vertices, faces)}
+    """take_apart of one block in a worker process -> (steps, stuck ids, Booleans). meshes: {id: workers.MeshRef}
     of the block's pieces only; apart: _Scene's, of those pieces."""
-    scene = _Scene({pid: trimesh.Trimesh(v, f, process=False) for pid, (v, f) in meshes.items()}, apart)
+    scene = _Scene({pid: ref.mesh for pid, ref in meshes.items()}, apart)
     replay = _Replay(scene, joints, plan, limit_frac, fine, max_tries, groups)
     steps = replay.take_apart(block)
     return steps, replay.stuck, replay.booleans
@@ -932,7 +931,10 @@ class _Replay:
         """A worker's future for take_apart(block), or None when no worker slot is free."""
         if self.pool is None or self.free <= 0:
             return None
-        meshes = {piece_id(c): (self.scene.verts[piece_id(c)], self.scene.faces[piece_id(c)]) for c in block}
+        from .workers import MeshRef
+
+        # as MeshRefs, the worker finds the very meshes the checks sent it, with the solids it built of them then
+        meshes = {piece_id(c): MeshRef(self.scene._meshes[piece_id(c)]) for c in block}
         apart = {pair: g for pair, g in self.scene.apart.items() if pair <= meshes.keys()}
         fut = self.pool.submit(_replay_block, meshes, self.joints, self.plan, self.limit_frac, self.fine,
                                self.max_tries, self.groups, list(block), apart)
