@@ -50,7 +50,7 @@ def remember_closed(mesh: trimesh.Trimesh, problem) -> None:
 def _closed_problem(mesh):
     if len(mesh.faces) == 0:
         return "no triangles"
-    if _plainly_closed(np.asarray(mesh.vertices), np.asarray(mesh.faces)):
+    if _plainly_closed(mesh):
         return None
     # Merge coincident vertices first: what a reader of the STL sees is the welded mesh.
     m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True, validate=False)
@@ -68,37 +68,31 @@ def _closed_problem(mesh):
     return None
 
 
-def _plainly_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """True when vertices (n, 3) and faces (m, 3) are a closed solid just as they are: every vertex used and none
-    that trimesh's merge would join to another, no triangle repeating a vertex, every directed edge once and its
-    reverse once (watertight and consistently wound), one connected body, positive volume. Then _closed_problem's
-    trimesh route (~5 ms a piece: 6 of the check's 49 CPU s at 1024 pieces) would find nothing; False only means: ask
-    it, for what is wrong."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+def _plainly_closed(mesh) -> bool:
+    """True when the mesh is a closed solid just as it is: every vertex used and none that trimesh's merge would join
+    to another, no triangle repeating a vertex, and io.mesh.mesh_problems (the loader's own numpy test: every edge
+    twice and oppositely wound, one body, outward) finds nothing. Then _closed_problem's trimesh route (~5 ms a
+    piece: 6 of the check's 49 CPU s at 1024 pieces) would find nothing either; False only means: ask it, for what
+    is wrong."""
+    from .io.mesh import mesh_problems
 
-    f = np.asarray(faces, dtype=np.int64)
-    n = len(vertices)
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    n = len(v)
     if f.ndim != 2 or f.shape[1] != 3 or n == 0 or f.min() < 0 or f.max() >= n:
         return False
     if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])):
         return False
     used = np.zeros(n, dtype=bool)
     used[f.ravel()] = True
-    if not used.all() or not np.all(np.isfinite(vertices)):
+    if not used.all() or not np.all(np.isfinite(v)):
         return False
     # the very rounding trimesh merges vertices by (tol.merge): no two vertices may share it
-    if len(trimesh.grouping.unique_rows(vertices, digits=trimesh.util.decimal_to_digits(trimesh.tol.merge))[0]) != n:
+    if len(trimesh.grouping.unique_rows(v, digits=trimesh.util.decimal_to_digits(trimesh.tol.merge))[0]) != n:
         return False
-    a = f.ravel()
-    b = f[:, [1, 2, 0]].ravel()
-    edge, back = np.sort(a * n + b), np.sort(b * n + a)
-    if np.any(edge[1:] == edge[:-1]) or not np.array_equal(edge, back):
-        return False
-    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
-    if connected_components(graph, directed=False, return_labels=False) != 1:
-        return False
-    return signed_volume(vertices, f) > 0
+    # mesh_problems counts bodies across edges, stricter than trimesh's vertex groups (a pinch sends it to trimesh),
+    # and its volume is uncentred: the centred sum below is the one the trimesh route judges by
+    return not mesh_problems(mesh) and signed_volume(v, f) > 0
 
 
 def piece_solid(mesh: trimesh.Trimesh, pid: str):
@@ -721,17 +715,18 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
             pieces.append((pid, _load_mesh(path, data)))
         except VolpuzzleError as err:
             failures.append(str(err))
-    gaps = report_face_gaps(report, dict(pieces))
-    checks = check_pieces(pieces, expected, volume_tolerance=tolerance, apart=pairs_apart(gaps, dict(pieces)))
+    by_id = dict(pieces)
+    gaps = report_face_gaps(report, by_id)
+    checks = check_pieces(pieces, expected, volume_tolerance=tolerance, apart=pairs_apart(gaps, by_id))
     checks["missing_files"] = missing
-    joint_failures = check_joints(dict(pieces), joints)
+    joint_failures = check_joints(by_id, joints)
     checks["joints_checked"] = len(joints)
     graph_failures, checks["joint_graph"] = check_joint_graph(report)
-    checks["printability"] = check_printability(report, dict(pieces), gaps=gaps)
+    checks["printability"] = check_printability(report, by_id, gaps=gaps)
     checks["printability"]["warnings"] += _unlisted_piece_files(directory, entries)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
                           + joint_failures + graph_failures + checks["printability"]["failures"]
-                          + _report_volume_problems(report, dict(pieces)))
+                          + _report_volume_problems(report, by_id))
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "
