@@ -317,7 +317,10 @@ def main():
             # --jobs 1 is already parallel in part (manifold's and numba's thread pools): the same CPU seconds
             # spread over every core bound what a second process can gain
             busy = (one["cpu"] + one["cpu_children"]) / one["wall"]
-            cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+            sys.path.insert(0, str(REPO))
+            from volpuzzle.workers import usable_cores
+
+            cores = usable_cores()
             print(f"  --jobs 1 kept {busy:.2f} cores busy on average (its engines' threads), so on {cores} cores no "
                   f"split of its {one['cpu'] + one['cpu_children']:.1f} CPU s can be more than {cores / busy:.2f}x "
                   f"faster; --jobs 2 spent {two['cpu'] + two['cpu_children']:.1f} CPU s (its second process "
