@@ -9,14 +9,14 @@ import traceback
 
 import click
 
-from . import __version__
+from . import __version__, stop
 from .errors import VolpuzzleError
 
 
 def _run(func, *args, **kwargs):
     """Expected failures become one line on stderr and exit 1; a bug says so in one line
     (VOLPUZZLE_DEBUG=1 for more)."""
-    previous = _stop_on_sigterm()
+    previous = stop.install()
     try:
         return func(*args, **kwargs)
     except VolpuzzleError as e:
@@ -25,7 +25,7 @@ def _run(func, *args, **kwargs):
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)
-    except _Terminated:
+    except stop.Terminated:
         click.echo("terminated", err=True)
         sys.exit(128 + signal.SIGTERM)
     except MemoryError:
@@ -39,24 +39,7 @@ def _run(func, *args, **kwargs):
                    f"details)", err=True)
         sys.exit(2)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-
-
-class _Terminated(BaseException):
-    """SIGTERM, raised where the program is, so that it unwinds like Ctrl-C: the export stage removes its temporary
-    folder on the way out (a BaseException, like KeyboardInterrupt, so no `except Exception` swallows it)."""
-
-
-def _stop_on_sigterm():
-    """Make SIGTERM unwind the stack like SIGINT -> the previous handler (None when not on the main thread)."""
-    def handler(_signum, _frame):
-        raise _Terminated()
-
-    try:
-        return signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread (e.g. a test runner's worker): leave signals alone
-        return None
+        stop.restore(previous)
 
 
 def _one_line(e) -> str:

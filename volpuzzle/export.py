@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from . import stop
 from .errors import ExportError, VolpuzzleError
 from .io.threemf import DEFAULT_ACCENT, write_3mf
 from .workers import Remote
@@ -674,6 +675,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
                            ("instructions.html", render_instructions_html(report)),
                            (MARKER, _marker_text())):  # the marker last: finished, no process owns it any more
             named(tmp / name, (tmp / name).write_text, text, "utf-8")
+        stop.check()  # a stop that a library swallowed on the way must not leave a finished folder behind
         _move_into_place(tmp, target)
     except BaseException as e:
         worker.shutdown(wait=True, cancel_futures=True)  # nothing may still write into tmp once it is removed

@@ -6,6 +6,8 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+from . import stop
+
 
 class Progress:
     """Stage and piece progress on a terminal; silent when stderr is not a terminal (CI, pipes)."""
@@ -36,8 +38,10 @@ class Timer:
     def __call__(self, name, progress=None):
         if progress is not None:
             progress.stage(name)
+        stop.check()  # every stage begins and ends with a look for a stop that a library swallowed
         t0 = time.perf_counter()
         try:
             yield
         finally:
             self.timings[name] = round(self.timings.get(name, 0.0) + time.perf_counter() - t0, 3)
+        stop.check()

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import stop
 from .errors import GeometryError
 
 # A pool pays when the per-piece stages hold enough work to share out: the twisted torus of 32 pieces spends ~9 CPU s
@@ -187,6 +188,7 @@ class Workers:
 
         def record(k, value):
             nonlocal count
+            stop.check()
             results[k], finished[k] = value, True
             count += 1
             if done is not None:
@@ -337,11 +339,16 @@ class Prefetch:
         return self._fn(*self._args)
 
 
+def _checked(value):
+    stop.check()
+    return value
+
+
 def map_pieces(workers: Workers | None, fn: Callable, items: Sequence, shared=None, what: str = "a stage") -> list:
     """workers.map_pieces(fn, items, shared, what), or [fn(shared, item) for item in items] here when there are no
     workers: what every per-piece stage does, the same results either way."""
     if workers is None:
-        return [fn(shared, item) for item in items]
+        return [_checked(fn(shared, item)) for item in items]
     return workers.map_pieces(fn, items, shared=shared, what=what)
 
 
