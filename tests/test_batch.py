@@ -78,3 +78,33 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
     assert result.exit_code == 1
     assert result.output.strip().startswith("error: --scheduler: no Dask scheduler answers at tcp://127.0.0.1:9")
     assert len(result.output.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_stopped_batch_leaves_no_temporary_folder(tmp_path):
+    # Ctrl-C or SIGTERM ends the local workers, and a build ended in its export leaves its temporary folder (seen:
+    # `.NAME.tmp-*` beside the finished folders). Here the stop comes as the first spec finishes, and the second
+    # spec's temporary folder is the one a worker killed in its export would leave: marked with a process that is gone
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from volpuzzle.batch import run_batch
+    from volpuzzle.export import MARKER
+
+    specs = [write_spec(tmp_path, _small("first", 1), "a.yaml"), write_spec(tmp_path, _small("second", 3), "b.yaml")]
+    root = tmp_path / "batch"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+
+    def stop(_done, _total, result):
+        left = root / f".{'second' if result.name == 'first' else 'first'}.tmp-abcd1234"
+        left.mkdir(parents=True)
+        (left / MARKER).write_text(json.dumps({"kind": "volpuzzle-output", "pid": dead.pid,
+                                               "host": socket.gethostname()}))
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch([str(s) for s in specs], output_root=root, jobs=2, progress=stop)
+    assert not [name for name in os.listdir(root) if ".tmp-" in name]

@@ -131,7 +131,20 @@ def run_batch(specs, output_root=None, jobs=None, scheduler=None, force=False, p
         client.close()
         if cluster is not None:
             cluster.close()
+            # A stopped batch (Ctrl-C, SIGTERM) ends its local workers mid-build, and a build ended in its export
+            # leaves its temporary folder. The workers are gone now, so those folders are stale: removed here, as the
+            # next build into each folder would. A remote cluster's builds run on, and their folders stay theirs.
+            _remove_temporaries([folder for _, folder, _ in targets])
     return results
+
+
+def _remove_temporaries(folders):
+    """remove_stale_temporaries beside each output folder (None: a spec that could not be read)."""
+    from .export import remove_stale_temporaries
+
+    for folder in folders:
+        if folder is not None:
+            remove_stale_temporaries(Path(folder))
 
 
 def summary_table(results):
