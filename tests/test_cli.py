@@ -171,3 +171,31 @@ def test_the_command_leaves_at_once_after_a_build_with_its_output_and_message_wh
     assert run.stdout.startswith("built 32 pieces"), run.stdout
     assert "leaked" not in run.stderr and "Traceback" not in run.stderr, run.stderr
     assert json.loads((tmp_path / "out" / "twisted-torus" / "report.json").read_text())["pieces"]
+
+
+# --- the progress line never swallows a warning or the last message ------------------------------------------------
+def test_a_warning_and_the_final_message_start_lines_of_their_own_after_a_progress_line(capsys):
+    # on a terminal, a stop showed as "joint ...terminated" and a warning as "compose 32/32 p1-1-7warning: ..."
+    from volpuzzle import cli as cli_mod
+    from volpuzzle.errors import SpecError
+    from volpuzzle.progress import Progress, warn
+
+    shown = Progress(enabled=True)
+
+    def failing():
+        shown.stage("compose")
+        shown.piece(3, 8, "p0-1-0")
+        warn("output.face_clearance: not applied")
+        shown.stage("label")
+        raise SpecError("grid: got [2, 0, 1], expected whole numbers >= 1")
+
+    with pytest.raises(SystemExit) as e:
+        cli_mod._run(failing)
+    assert e.value.code == 1
+    err = capsys.readouterr().err
+    # each message follows a clear of the line ("\r\033[K"), and ends with its own newline
+    assert err == ("\r\033[Kcompose ...\r\033[Kcompose 3/8 p0-1-0\r\033[Kwarning: output.face_clearance: not applied\n"
+                   "\r\033[Klabel ...\r\033[Kerror: grid: got [2, 0, 1], expected whole numbers >= 1\n")
+    # after a line was ended nothing more is cleared: output without a progress line stays as it was
+    warn("alone")
+    assert capsys.readouterr().err == "warning: alone\n"

@@ -46,6 +46,7 @@ from .errors import GeometryError
 from .geometry import is_ok
 from .grid import AXES, piece_id
 from .joint import joint_graph, joints_by_cell
+from .progress import warn
 
 DEFAULT_MAX_ANGLE_DEG = 1.0  # pins of a split within this of each other still slide together (2 asin(c / L) ~ 2.9 deg)
 
@@ -1046,7 +1047,6 @@ def replay_assembly(plan, pieces, joints, allow=(), randomized=False, tiling=Non
     assembly_order, steps, words, welded, stuck.
     A welded puzzle fails the build unless joints.allow has 'welded' (then it is a warning); with tiling and fmap
     the message names the grid at which no cell bends more than a half turn (bend_grid), when that is another."""
-    import sys
 
     if plan is None:
         return {"assembly_order": [p.id for p in pieces], "steps": [], "words": [], "welded": False, "stuck": []}
@@ -1062,6 +1062,6 @@ def replay_assembly(plan, pieces, joints, allow=(), randomized=False, tiling=Non
             raise GeometryError(f"assembly: the puzzle is welded: {stuck} cannot be taken out along their pins "
                                 f"(got {len(res['stuck'])} stuck pieces, expected none; try {tries}, or "
                                 f"joints.allow: [welded])")
-        print(f"warning: the puzzle is welded: {stuck} cannot be taken out along their pins", file=sys.stderr)
+        warn(f"the puzzle is welded: {stuck} cannot be taken out along their pins")
     return {"assembly_order": res["assembly_order"], "steps": res["steps"], "words": steps_in_words(res),
             "welded": bool(res["welded"]), "stuck": list(res["stuck"])}

@@ -160,15 +160,16 @@ def summary_table(results):
     return "\n".join(lines)
 
 
-def terminal_progress(stream=None):
+def terminal_progress():
     """progress() for run_batch: one updating line on a terminal, nothing otherwise."""
-    stream = stream or sys.stderr
-    if not stream.isatty() or os.environ.get("VOLPUZZLE_NO_PROGRESS"):
+    from .progress import end_line, show_line
+
+    if not sys.stderr.isatty() or os.environ.get("VOLPUZZLE_NO_PROGRESS"):
         return None
 
     def show(done, total, result):
-        state = "ok" if result.ok else "failed"
-        end = "\n" if done == total else ""
-        print(f"\r\033[Kbatch {done}/{total}: {result.name} {state}", end=end, file=stream, flush=True)
+        show_line(f"batch {done}/{total}: {result.name} {'ok' if result.ok else 'failed'}")
+        if done == total:
+            end_line()  # the summary table follows
 
     return show

@@ -11,6 +11,7 @@ import click
 
 from . import __version__, stop
 from .errors import VolpuzzleError
+from .progress import end_line, warn
 
 
 def _run(func, *args, **kwargs):
@@ -20,19 +21,24 @@ def _run(func, *args, **kwargs):
     try:
         return func(*args, **kwargs)
     except VolpuzzleError as e:
+        end_line()  # the message on a line of its own, not after a progress line
         click.echo(f"error: {_one_line(e)}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
+        end_line()
         click.echo("interrupted", err=True)
         sys.exit(130)
     except stop.Terminated:
+        end_line()
         click.echo("terminated", err=True)
         sys.exit(128 + signal.SIGTERM)
     except MemoryError:
+        end_line()
         click.echo("error: out of memory (the machine has too little for this model, grid and tolerance; try a "
                    "coarser output.tolerance or a smaller grid)", err=True)
         sys.exit(1)
     except Exception as e:  # noqa: BLE001 - the user must never see a bare traceback
+        end_line()
         if os.environ.get("VOLPUZZLE_DEBUG"):
             traceback.print_exc()
         click.echo(f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; set VOLPUZZLE_DEBUG=1 for "
@@ -90,7 +96,7 @@ def validate(spec, allow_large):
 
         click.echo(f"fit: {fit_line(summary['fit'])}")
         for warning in summary["fit"]["warnings"]:
-            click.echo(f"warning: {warning}", err=True)
+            warn(warning)
 
 
 @cli.command()
@@ -129,7 +135,7 @@ def check(directory):
     result = _run(check_directory, directory)
     click.echo(f"{directory}: all checks hold ({result.get('summary', '')})")
     for warning in (result.get("printability") or {}).get("warnings", []):
-        click.echo(f"warning: {warning}", err=True)
+        warn(warning)
 
 
 @cli.command()

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SpecError
+from .progress import warn
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,7 +95,6 @@ def with_closed_axes(spec, model, found=()):
     would touch face to face, with neither a face clearance nor a pin. A mesh's cage is left as its spec says (its
     pieces are joined on their real contacts)."""
     import dataclasses
-    import sys
 
     from .grid import AXES
 
@@ -102,10 +102,9 @@ def with_closed_axes(spec, model, found=()):
     unlisted = sorted(set(found) - set(spec.periodic) - set(closed)) if model.mesh is None else []
     if unlisted:
         names = ", ".join(AXES[a] for a in unlisted)
-        print(f"warning: periodic: the model closes on itself along {names} (its min and max faces coincide), so "
-              f"its pieces are joined across that seam (got periodic {[AXES[a] for a in spec.periodic]}, expected "
-              f"{[AXES[a] for a in sorted(set(spec.periodic) | set(unlisted))]}; write it so to silence this)",
-              file=sys.stderr)
+        warn(f"periodic: the model closes on itself along {names} (its min and max faces coincide), so "
+             f"its pieces are joined across that seam (got periodic {[AXES[a] for a in spec.periodic]}, expected "
+             f"{[AXES[a] for a in sorted(set(spec.periodic) | set(unlisted))]}; write it so to silence this)")
     closed = sorted(set(closed) | set(unlisted))
     if not closed:
         return spec

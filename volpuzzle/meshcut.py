@@ -19,7 +19,6 @@ its pins at once, as long as that stays within MAX_TILT_DEG of the patch there. 
 wall) is checked against the real pieces, cropped around the patch, instead of against the whole mesh.
 """
 
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from .errors import GeometryError
 from .geometry import check_status, cylinder, unique_pairs
 from .joint import MAX_TILT_DEG, MIN_LENGTH, MIN_RADIUS, outer_radius, wall
+from .progress import warn
 
 __all__ = ["intersect_pieces", "merge_fragments", "contacts", "Contact", "PinSize", "place_joints", "add_joints",
            "joint_graph_problem", "plan_splits", "compose_in_mesh"]
@@ -725,9 +725,8 @@ def set_back_faces(cut, cells, shrunk, merges, clearance):
         new = kept_bodies(boolean(body, keep, "intersection", what), len(body.decompose()), float(body.volume()),
                           SLIVER_SHARE)
         if new is None:
-            print(f"warning: output.face_clearance: piece {pid} would come apart with its faces set back (a thin "
-                  f"neck along a cut face); it keeps its faces, its neighbours their half of the gap",
-                  file=sys.stderr)
+            warn(f"output.face_clearance: piece {pid} would come apart with its faces set back (a thin "
+                 f"neck along a cut face); it keeps its faces, its neighbours their half of the gap")
             new = body
         taken += float(body.volume()) - float(new.volume())
         out[pid] = new

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -16,7 +15,7 @@ from typing import TYPE_CHECKING
 
 from .errors import ModelError
 from .load import load_model_for, with_closed_axes
-from .progress import Progress, Timer
+from .progress import Progress, Timer, warn
 
 if TYPE_CHECKING:  # the stage modules load trimesh and the geometry engine: only after the limits pass
     from .assembly import AssemblyPlan
@@ -152,8 +151,8 @@ def build(spec_path, output_dir=None, fmt=None, seed=None, jobs=None, force=Fals
     progress = progress if progress is not None else Progress()
     spec = with_overrides(load_spec(spec_path), output_dir=output_dir, fmt=fmt, seed=seed, allow_large=allow_large)
     if seed is not None and spec.randomize is None:  # a user passing a seed expects it to change the pieces
-        print(f"warning: --seed {seed} changes nothing: the spec does not randomize (got no randomize or amplitude 0, "
-              f"expected randomize: {{amplitude: 0.25}} for a seed to matter)", file=sys.stderr)
+        warn(f"--seed {seed} changes nothing: the spec does not randomize (got no randomize or amplitude 0, "
+             f"expected randomize: {{amplitude: 0.25}} for a seed to matter)")
     target = check_target(Path(spec.output.directory), force, protect=spec_inputs(spec))
     jobs = jobs or os.cpu_count() or 1
     # started first, so that the workers' start-up runs on the other cores while this process loads and plans
@@ -184,7 +183,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     require_pieces_joined(spec, s.pieces, s.joints, s.contacts or ())
     assert_passed(s.checks)
     for warning in fit(spec, s.joints, s.face_clearance)["warnings"]:
-        print(f"warning: {warning}", file=sys.stderr)
+        warn(warning)
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
@@ -220,8 +219,8 @@ def _face_clearance(spec, s):
     clearance = spec.output.face_clearance
     if clearance > 0 and s.joints and spec.joints.space == "domain":
         # pins built in the domain are cut on the cell's own parameter box, whose faces are not set back
-        print(f"warning: output.face_clearance: not applied with joints.space: domain (got {clearance:g} mm, the "
-              f"cut faces meet)", file=sys.stderr)
+        warn(f"output.face_clearance: not applied with joints.space: domain (got {clearance:g} mm, the "
+             f"cut faces meet)")
         clearance = 0.0
     return clearance
 

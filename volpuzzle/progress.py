@@ -1,4 +1,5 @@
-"""What a build shows while it runs (Progress) and how long each stage took (Timer, for report.json timings_s)."""
+"""What a build shows while it runs: its progress line (Progress), its warnings (warn) on lines of their own, and how
+long each stage took (Timer, for report.json timings_s)."""
 
 import os
 import sys
@@ -7,6 +8,30 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from . import stop
+
+_line_open = False  # a progress line is on the terminal, not yet ended by a newline
+
+
+def show_line(text: str) -> None:
+    """Replace the progress line on stderr with text (no newline: the next one overwrites it)."""
+    global _line_open
+    print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
+    _line_open = True
+
+
+def end_line() -> None:
+    """Clear a progress line left on the terminal, so that what is printed next starts a line of its own (a warning,
+    or the one-line message of an error or a stop)."""
+    global _line_open
+    if _line_open:
+        print("\r\033[K", end="", file=sys.stderr, flush=True)
+        _line_open = False
+
+
+def warn(message: str) -> None:
+    """"warning: message" on stderr, on a line of its own: the one way the stages tell the user of a warning."""
+    end_line()
+    print(f"warning: {message}", file=sys.stderr, flush=True)
 
 
 class Progress:
@@ -19,15 +44,14 @@ class Progress:
 
     def stage(self, name):
         if self.enabled:
-            print(f"\r\033[K{name} ...", end="", file=sys.stderr, flush=True)
+            show_line(f"{name} ...")
 
     def piece(self, i, n, piece_id):
         if self.enabled:
-            print(f"\r\033[Kcompose {i}/{n} {piece_id}", end="", file=sys.stderr, flush=True)
+            show_line(f"compose {i}/{n} {piece_id}")
 
     def done(self):
-        if self.enabled:
-            print("\r\033[K", end="", file=sys.stderr, flush=True)
+        end_line()
 
 
 @dataclass

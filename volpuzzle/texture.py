@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ModelError
+from .progress import warn
 
 _SAMPLES = 720  # per free parameter of the face: about 0.45 mm on a 100 mm sphere, 3 pixels of a 2048 map
 _FACING = 0.6  # cosine: a triangle within about 53 degrees of the surface normal belongs to the surface
@@ -132,7 +133,6 @@ def face_colors(piece_rgb, colors):
 
 def build_texture(spec, volume, pieces, tolerance):
     """Per-triangle texture colours of every piece, or (None, None) without a texture."""
-    import sys
 
     if spec.texture is None:
         return None, None
@@ -140,5 +140,5 @@ def build_texture(spec, volume, pieces, tolerance):
     if spec.output.format == "stl":
         report["note"] = ("STL cannot hold colour: the pieces/*.stl files are plain; the texture is in puzzle.3mf, "
                           "the plates and preview.png (output.format: 3mf gives coloured piece files too)")
-        print(f"warning: texture: {report['note']}", file=sys.stderr)
+        warn(f"texture: {report['note']}")
     return colors, report
