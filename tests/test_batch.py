@@ -108,3 +108,28 @@ def test_a_stopped_batch_leaves_no_temporary_folder(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         run_batch([str(s) for s in specs], output_root=root, jobs=2, progress=stop)
     assert not [name for name in os.listdir(root) if ".tmp-" in name]
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_batch_is_one_line(tmp_path):
+    # Ctrl-C reaches the whole process group: the workers die of it, and Dask's nanny logged the broken shutdown as
+    # an ERROR with a traceback before our "interrupted"
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    big = {**_small("big-a", 1), "grid": [4, 4, 4], "output": {"tolerance": 0.05}}
+    specs = [write_spec(tmp_path, big, "a.yaml"), write_spec(tmp_path, {**big, "name": "big-b"}, "b.yaml")]
+    proc = subprocess.Popen([sys.executable, "-m", "volpuzzle.cli", "batch", *map(str, specs), "-o",
+                             str(tmp_path / "out"), "--jobs", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True, cwd=tmp_path)
+    time.sleep(7)  # the cluster started (~3 s) and both builds running (each ~10 s)
+    assert proc.poll() is None, "the batch ended before the signal: the test needs longer builds"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.decode().strip() == "interrupted"
+    out = tmp_path / "out"
+    assert not (out.exists() and [name for name in os.listdir(out) if ".tmp-" in name])

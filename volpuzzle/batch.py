@@ -95,7 +95,7 @@ def _client(jobs, scheduler):
                           "distributed.worker.daemon": False}):
         # one build per worker process at a time: a build keeps both of its cores busy on its own
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=40, env={"VOLPUZZLE_NO_PROGRESS": "1"})
+                               silence_logs=50, env={"VOLPUZZLE_NO_PROGRESS": "1"})
     return Client(cluster), cluster
 
 
