@@ -199,3 +199,31 @@ def test_a_warning_and_the_final_message_start_lines_of_their_own_after_a_progre
     # after a line was ended nothing more is cleared: output without a progress line stays as it was
     warn("alone")
     assert capsys.readouterr().err == "warning: alone\n"
+
+
+_WHAT_INSTALL_SAW = """
+import sys
+from volpuzzle import cli, stop
+original = stop.install
+def install():
+    heavy = [m for m in ("volpuzzle.pipeline", "volpuzzle.check", "volpuzzle.batch", "volpuzzle.io", "numpy")
+             if m in sys.modules]
+    print("loaded when the stop was installed:", heavy, file=sys.stderr)
+    return original()
+stop.install = install
+sys.argv = ["volpuzzle"] + sys.argv[1:]
+cli.main()
+"""
+
+
+@pytest.mark.parametrize("command", [["build", "missing.yaml"], ["validate", "missing.yaml"], ["check", "missing"],
+                                     ["info", "missing.itd"], ["batch", "missing.yaml"]])
+def test_every_command_imports_its_stages_after_ctrl_c_is_handled(tmp_path, command):
+    # the stage modules take half a second to import: a Ctrl-C then must be "interrupted", not a traceback
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _WHAT_INSTALL_SAW, *command], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=120)
+    assert run.returncode == 1, run.stderr
+    assert "loaded when the stop was installed: []" in run.stderr, run.stderr

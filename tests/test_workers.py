@@ -39,6 +39,12 @@ def _mesh_volume(_shared, ref):
     return W.MeshRef(ref.mesh.copy()), float(ref.mesh.volume)
 
 
+def _sigint_state(_shared, _item):
+    import signal
+
+    return signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []), signal.getsignal(signal.SIGINT)
+
+
 @pytest.fixture(scope="module")
 def pool():
     with W.Workers(2) as workers:
@@ -191,6 +197,18 @@ def test_a_prefetch_runs_meanwhile_here_only_while_a_worker_computes_it(pool):
         time.sleep(0.01)
     assert done.result(meanwhile=lambda: calls.append("done"))[1] == 9
     assert calls == [False]
+
+
+def test_a_worker_never_sees_ctrl_c(pool, monkeypatch):
+    # Ctrl-C reaches the whole process group; a worker still importing its modules printed a KeyboardInterrupt
+    # traceback. Workers start with SIGINT blocked (pthread_sigmask) and ignore it once started
+    import signal
+
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    (blocked, handler), = pool.map_pieces(_sigint_state, [0], shared={})
+    assert blocked and handler == signal.SIG_IGN
+    # and this process's own mask is as it was
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
 
 
 def test_a_pool_only_where_it_pays_and_may_start():

@@ -15,8 +15,9 @@ from .progress import end_line, warn
 
 
 def _run(func, *args, **kwargs):
-    """Expected failures become one line on stderr and exit 1; a bug says so in one line
-    (VOLPUZZLE_DEBUG=1 for more)."""
+    """func(*args, **kwargs), where expected failures become one line on stderr and exit 1, a stop "interrupted" or
+    "terminated", and a bug one line too (VOLPUZZLE_DEBUG=1 for more). A command imports the stage modules inside
+    func: a Ctrl-C during those imports (half a second) is then a stop like any other, not a traceback."""
     previous = stop.install()
     try:
         return func(*args, **kwargs)
@@ -70,10 +71,13 @@ def cli():
 @click.option("--allow-large", is_flag=True, help="Lift the resource limits (pieces, triangles, control points).")
 def build(spec, output_dir, fmt, seed, jobs, force, allow_large):
     """Run the whole pipeline and write the output folder."""
-    from .pipeline import build as run_build
+    def run():
+        from .pipeline import build as run_build
 
-    report = _run(run_build, spec, output_dir=output_dir, fmt=fmt, seed=seed, jobs=jobs, force=force,
-                  allow_large=allow_large)
+        return run_build(spec, output_dir=output_dir, fmt=fmt, seed=seed, jobs=jobs, force=force,
+                         allow_large=allow_large)
+
+    report = _run(run)
     checks = report["checks"]
     click.echo(f"built {len(report['pieces'])} pieces, {len(report['joints'])} joints in "
                f"{report['timings_s'].get('total', 0):.1f} s -> {report['spec']['output']['directory']} "
@@ -86,9 +90,12 @@ def build(spec, output_dir, fmt, seed, jobs, force, allow_large):
 @click.option("--allow-large", is_flag=True, help="Lift the resource limits (pieces, triangles, control points).")
 def validate(spec, allow_large):
     """Check the spec and the model without building."""
-    from .pipeline import validate as run_validate
+    def run():
+        from .pipeline import validate as run_validate
 
-    summary = _run(run_validate, spec, allow_large=allow_large)
+        return run_validate(spec, allow_large=allow_large)
+
+    summary = _run(run)
     click.echo(f"{spec}: valid — {summary['pieces']} pieces, {summary['joints']} joints, model "
                f"{summary['model']['volume_mm3']:.6g} mm^3, {summary['model']['handedness']}-handed")
     if summary.get("fit"):
@@ -105,13 +112,15 @@ def validate(spec, allow_large):
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def info(model, patch, as_json):
     """Degrees, control points, knots, periodic axes, bounding box, volume, Jacobian range."""
-    from .info import format_info, model_info
-    from .io import load_model
-
     def run():
+        from .info import model_info
+        from .io import load_model
+
         return model_info(load_model(model, patch=patch), path=model, patch=patch)
 
     data = _run(run)
+    from .info import format_info
+
     # JSON has no Infinity or NaN: a figure that is not finite is null
     click.echo(json.dumps(_finite(data), allow_nan=False) if as_json else format_info(data))
 
@@ -130,9 +139,12 @@ def _finite(x):
 @click.argument("directory", type=click.Path(file_okay=False))
 def check(directory):
     """Verify a built puzzle from its files alone."""
-    from .check import check_directory
+    def run():
+        from .check import check_directory
 
-    result = _run(check_directory, directory)
+        return check_directory(directory)
+
+    result = _run(run)
     click.echo(f"{directory}: all checks hold ({result.get('summary', '')})")
     for warning in (result.get("printability") or {}).get("warnings", []):
         warn(warning)
@@ -147,10 +159,15 @@ def check(directory):
 @click.option("--force", is_flag=True, help="Replace existing output folders.")
 def batch(specs, output_root, jobs, scheduler, force):
     """Build many specs on a Dask cluster; a failed spec does not stop the others."""
-    from .batch import run_batch, summary_table, terminal_progress
+    def run():
+        from .batch import run_batch, terminal_progress
 
-    results = _run(run_batch, list(specs), output_root=output_root, jobs=jobs, scheduler=scheduler, force=force,
-                   progress=terminal_progress())
+        return run_batch(list(specs), output_root=output_root, jobs=jobs, scheduler=scheduler, force=force,
+                         progress=terminal_progress())
+
+    results = _run(run)
+    from .batch import summary_table
+
     click.echo(summary_table(results))
     if not all(r.ok for r in results):
         sys.exit(1)

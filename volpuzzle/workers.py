@@ -21,12 +21,14 @@ item needs (`shared`: the tiling, the map, the joints) are pickled once into a f
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import hashlib
 import itertools
 import multiprocessing
 import os
 import pickle
 import shutil
+import signal
 import tempfile
 import weakref
 from collections.abc import Callable, Sequence
@@ -69,11 +71,24 @@ _CACHE: dict[int, object] = {}  # in a worker: the shared inputs read so far, by
 _IN_WORKER = False  # set by _init_worker
 
 
+@contextlib.contextmanager
+def _sigint_blocked():
+    """SIGINT blocked in this thread while worker processes are started, which keep the mask: Ctrl-C reaches the whole
+    process group, and a worker still importing its modules (before _init_worker) printed a KeyboardInterrupt
+    traceback. This process receives a Ctrl-C of those moments once the block ends (or on another thread at once)."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def _init_worker():
     # Ctrl-C reaches the whole process group: this process handles it (and ends the workers), a worker would only
-    # print a traceback
-    import signal
-
+    # print a traceback (started with SIGINT blocked, it never sees it where pthread_sigmask exists)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     global _IN_WORKER
     _IN_WORKER = True
@@ -132,7 +147,8 @@ class Workers:
         self._executor = concurrent.futures.ProcessPoolExecutor(max_workers=self.size, mp_context=ctx,
                                                                initializer=_init_worker)
         # one warm-up per worker: the pool starts them one by one as tasks arrive
-        self._started = [self._executor.submit(_warm) for _ in range(self.size)]
+        with _sigint_blocked():
+            self._started = [self._executor.submit(_warm) for _ in range(self.size)]
         self._tokens = itertools.count(1)
         self._dir = None
         self._warmed_rest = False
