@@ -133,3 +133,29 @@ def test_ctrl_c_on_a_batch_is_one_line(tmp_path):
     assert err.decode().strip() == "interrupted"
     out = tmp_path / "out"
     assert not (out.exists() and [name for name in os.listdir(out) if ".tmp-" in name])
+
+
+@pytest.mark.slow
+def test_a_batch_beside_another_cluster_prints_no_port_warning(tmp_path, capfd):
+    # another Dask cluster (a notebook's, a second batch) holding port 8787 made ours warn in three lines on stderr
+    import socket
+    import warnings
+
+    from volpuzzle.batch import run_batch
+
+    spec = write_spec(tmp_path, _small("beside", 1), "a.yaml")
+    holder = socket.socket()
+    try:
+        holder.bind(("", 8787))
+        holder.listen(1)
+    except OSError:
+        pass  # already held by someone: the case itself
+    try:
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            results = run_batch([str(spec)], output_root=tmp_path / "out", jobs=1)
+    finally:
+        holder.close()
+    assert [r.ok for r in results] == [True]
+    assert not [w for w in seen if "already in use" in str(w.message)]
+    assert "already in use" not in capfd.readouterr().err

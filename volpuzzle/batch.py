@@ -12,6 +12,7 @@ measured times in report.json and report.md (timings_s, checks.overlap_time_s) d
 import os
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,7 +93,10 @@ def _client(jobs, scheduler):
             raise ExportError(f"--scheduler: no Dask scheduler answers at {scheduler} ({e}; expected the address of "
                               f"a running scheduler, such as tcp://host:8786)") from None
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
-                          "distributed.worker.daemon": False}):
+                          "distributed.worker.daemon": False}), warnings.catch_warnings():
+        # the scheduler's HTTP server asks for port 8787 even without a dashboard, and warns on stderr in three lines
+        # when another cluster (a notebook's, a second batch) holds it; any free port serves
+        warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
         # one build per worker process at a time: a build keeps both of its cores busy on its own
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
                                silence_logs=50, env={"VOLPUZZLE_NO_PROGRESS": "1"})
