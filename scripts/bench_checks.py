@@ -98,7 +98,7 @@ def main():
     meshes = dict(pieces)
     expected = report["checks"]["expected_volume_mm3"]
     clearance = float(report["checks"].get("face_clearance_mm") or 0.0)
-    shared = check._shared_faces(report)
+    shared = check._shared_faces(report.get("contacts"))
     counts, seconds = Counter(), Counter()
     _counting(check, "overlap_volume", counts, seconds)
     _counting(assembly, "_overlap", counts, seconds)

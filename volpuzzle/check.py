@@ -945,7 +945,7 @@ def neighbour_gaps(meshes: dict, face_clearance: float, contacts=None, workers=N
     records; any neighbours when None), none without a face clearance (see _face_gaps). meshes: {id: trimesh}."""
     if not face_clearance > 0:
         return []
-    return _face_gaps(meshes, face_clearance, _shared_faces({"contacts": contacts}), workers)
+    return _face_gaps(meshes, face_clearance, _shared_faces(contacts), workers)
 
 
 def pairs_apart(gaps, meshes: dict) -> dict:
@@ -964,9 +964,9 @@ def pairs_apart(gaps, meshes: dict) -> dict:
     return out
 
 
-def _shared_faces(report):
-    """{frozenset of two piece ids} that share a cut face by report.json's contacts, or None when it lists none."""
-    contacts = report.get("contacts")
+def _shared_faces(contacts):
+    """{frozenset of two piece ids} that share a cut face by contacts (report.json's records), or None when there are
+    none."""
     if not isinstance(contacts, list) or not contacts:
         return None
     pairs = set()

@@ -185,10 +185,11 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     for warning in fit(spec, s.joints, s.face_clearance)["warnings"]:
         warn(warning)
     dowels, dowel_poses = lay_dowels_flat(dowel_parts(s.joints), s.joints) if spec.joints.style == "dowel" else ([], {})
+    meshes = {p.id: p.mesh for p in s.pieces}
     with timer("assembly", progress) if s.plan is not None else nullcontext():  # no plan: nothing to replay or time
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
                                    tiling=s.tiling, fmap=s.fmap, workers=workers,
-                                   apart=pairs_apart(s.face_gaps, {p.id: p.mesh for p in s.pieces}))
+                                   apart=pairs_apart(s.face_gaps, meshes))
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
     texture, texture_report = None, None
     if spec.texture is not None:
@@ -201,8 +202,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,
         # labels) is judged before it is written, so a build never passes what its own check refuses
-        report["checks"]["printability"] = check_printability(report, {p.id: p.mesh for p in s.pieces},
-                                                               workers=workers, gaps=s.face_gaps)
+        report["checks"]["printability"] = check_printability(report, meshes, workers=workers, gaps=s.face_gaps)
     require_printable(spec, report)
     forget(p.mesh for p in s.pieces)  # from here on the pieces are only written and drawn
     with timer("export", progress):
@@ -303,7 +303,7 @@ def _finish(spec, s, pieces, expected, clearance, timer, progress, workers=None)
         meshes = {p.id: p.mesh for p in pieces}
         # the face gaps first: a pair whose surfaces they find apart needs no overlap Boolean (pairs_apart)
         gaps = neighbour_gaps(meshes, clearance, s.contacts, workers=workers)
-        checks = check_pieces([(p.id, p.mesh) for p in pieces], expected - engraved - cut, workers=workers,
+        checks = check_pieces(list(meshes.items()), expected - engraved - cut, workers=workers,
                               apart=pairs_apart(gaps, meshes))
         # every pin in its hole on the pieces as written, as `volpuzzle check` judges them: a label, a base cut or
         # the float32 rounding after the joints were cut must not pass here and fail there
