@@ -211,6 +211,33 @@ def test_a_worker_never_sees_ctrl_c(pool, monkeypatch):
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
 
 
+def _swallows_a_stop_on_one(shared, item):
+    from volpuzzle import stop
+
+    shared.setdefault("ran", []).append(item)
+    if item == 1:
+        try:
+            stop.ask(stop.Terminated)
+        except BaseException:  # noqa: BLE001 - as trimesh does
+            pass
+    return item
+
+
+def test_a_stop_swallowed_inside_an_item_ends_the_stage_after_it():
+    # a per-piece stage asks for a stop after every item: a SIGTERM whose raise a library swallowed must not let the
+    # stage (and the build) run on
+    from volpuzzle import stop
+
+    shared = {}
+    try:
+        with pytest.raises(stop.Terminated):
+            W.map_pieces(None, _swallows_a_stop_on_one, [0, 1, 2, 3], shared=shared)
+    finally:
+        stop.restore(None)
+    assert shared["ran"] == [0, 1]
+    assert W.map_pieces(None, _swallows_a_stop_on_one, [5], shared={}) == [5]  # forgotten once restored
+
+
 def test_a_pool_only_where_it_pays_and_may_start():
     assert not W.wanted(1, 1000)  # one job: everything here
     assert not W.wanted(2, W.MIN_PIECES - 1)  # too little work for a worker's start-up

@@ -204,7 +204,6 @@ class Workers:
 
         def record(k, value):
             nonlocal count
-            stop.check()
             results[k], finished[k] = value, True
             count += 1
             if done is not None:
@@ -355,17 +354,23 @@ class Prefetch:
         return self._fn(*self._args)
 
 
-def _checked(value):
-    stop.check()
-    return value
+def map_pieces(workers: Workers | None, fn: Callable, items: Sequence, shared=None, what: str = "a stage",
+               done: Callable | None = None) -> list:
+    """workers.map_pieces(fn, items, shared, what, done), or [fn(shared, item) for item in items] here when there are
+    no workers: what every per-piece stage does, the same results either way. After each item a stop the user asked
+    for is raised again (stop.check), in case a library swallowed its first raise."""
+    def finished(count, value):
+        stop.check()
+        if done is not None:
+            done(count, value)
 
-
-def map_pieces(workers: Workers | None, fn: Callable, items: Sequence, shared=None, what: str = "a stage") -> list:
-    """workers.map_pieces(fn, items, shared, what), or [fn(shared, item) for item in items] here when there are no
-    workers: what every per-piece stage does, the same results either way."""
     if workers is None:
-        return [_checked(fn(shared, item)) for item in items]
-    return workers.map_pieces(fn, items, shared=shared, what=what)
+        results = []
+        for item in items:
+            results.append(fn(shared, item))
+            finished(len(results), results[-1])
+        return results
+    return workers.map_pieces(fn, items, shared=shared, what=what, done=finished)
 
 
 def start(jobs: int | None, pieces: int) -> Workers | None:

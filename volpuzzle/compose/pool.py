@@ -68,12 +68,14 @@ def use_pool(jobs, n, sampling, joints):
     return seconds >= _POOL_MIN_SECONDS
 
 
-def build_pooled(order, workers, job, progress):
-    """Pieces built by this process and the workers (volpuzzle.workers.Workers) together -> {cell index:
+def build_records(order, workers, job, progress):
+    """Pieces built by this process, and the workers (volpuzzle.workers.Workers, or None) together -> {cell index:
     _PieceRecord}. This process takes pieces from the front while the workers take them from the back (see
     Workers.map_pieces); the job travels to each worker once. Every piece is built by the same function, so where it
     is built does not change it."""
+    from ..workers import map_pieces
+
     n = len(order)
     done = (lambda k, record: progress(k, n, record.id)) if progress else None
-    records = workers.map_pieces(build_record, list(order), shared=job, what="compose", done=done)
+    records = map_pieces(workers, build_record, list(order), shared=job, what="compose", done=done)
     return dict(zip(order, records, strict=True))

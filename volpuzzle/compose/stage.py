@@ -1,6 +1,6 @@
 """The compose stage: every cell of the tiling -> Piece, serially or on the process pool when it pays."""
 
-from .pool import BuildJob, build_pooled, build_record, piece_from, use_pool
+from .pool import BuildJob, build_records, piece_from, use_pool
 from .sampling import sample_parameters
 
 
@@ -23,18 +23,14 @@ def compose(tiling, fmap, joints, tolerance, jobs=1, progress=None, sampling=Non
     n = len(order)
     job = BuildJob(tiling, sampling, fmap, list(joints or []), face_clearance)
     if workers is not None and n > 1:
-        records = build_pooled(order, workers, job, progress)
+        records = build_records(order, workers, job, progress)
     elif use_pool(jobs, n, sampling, job.joints):
         from ..workers import Workers
 
         with Workers(int(jobs)) as own:
-            records = build_pooled(order, own, job, progress)
+            records = build_records(order, own, job, progress)
     else:
-        records = {}
-        for k, index in enumerate(order):
-            records[index] = build_record(job, index)
-            if progress:
-                progress(k + 1, n, records[index].id)
+        records = build_records(order, None, job, progress)
     out = Pieces(piece_from(records[index]) for index in order)
     out.sampling = sampling
     out.seconds = {records[index].id: records[index].seconds for index in order}
