@@ -4,8 +4,10 @@
 - the twisted torus (150 mm, 0.05 mm) at 32, 256 and 1024 pieces (2x2x8, 4x4x16, 4x4x64; --quick: 32 and 256):
   per-stage wall and CPU seconds, total, peak memory, plates, and each stage's fitted exponent t ~ n^k; at 150 mm
   4x4x64 is refused as crowded (87 pieces, slabs about 5 mm thick along w, find no spot for a pin that keeps clear
-  of their other joints, even with joints.radius 1), so its figures need --torus-size 300 (all sizes then at
-  300 mm, more triangles per piece);
+  of their other joints, even with joints.radius 1), and 8x8x16 cells (about 4 mm across) hold no 1 mm pin, so the
+  1024-piece figures need --torus-size 300 (all sizes then at 300 mm, more triangles per piece);
+- the 1024-piece target itself: both grids the issue names (4x4x64 and 8x8x16) at the default --jobs, as a user
+  builds them (--without-labels: 8x8x16 once more with output.labels false, to show what the ids cost);
 - --jobs 1 against --jobs 2 on the 256-piece build, and the most any split could gain: --jobs 1 already keeps more
   than one core busy (manifold's and numba's threads), so its CPU seconds spread over every core bound the speed-up;
 - bunny-cage against a plain manifold3d baseline written here: the same mesh cut into 2x2x2 boxes with 12 pins;
@@ -36,7 +38,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-GRIDS = {32: [2, 2, 8], 256: [4, 4, 16], 1024: [4, 4, 64]}  # 8 x 8 x 16 leaves no room for a 1 mm pin
+GRIDS = {32: [2, 2, 8], 256: [4, 4, 16], 1024: [4, 4, 64]}  # one family, refined along w, for the exponents
+TARGET_GRIDS = ([4, 4, 64], [8, 8, 16])  # the issue's 1024-piece target names both
 
 
 def machine_probe():
@@ -103,14 +106,16 @@ def run_child(spec, jobs=1, env=None):
     return result
 
 
-def variant(name, grid, tmp, allow_flawed=False, size=None):
+def variant(name, grid, tmp, allow_flawed=False, size=None, labels=True):
     import yaml
 
     spec = yaml.safe_load((REPO / "specs" / f"{name}.yaml").read_text())
-    spec["name"] = f"{name}-{grid[0]}x{grid[1]}x{grid[2]}"
+    spec["name"] = f"{name}-{grid[0]}x{grid[1]}x{grid[2]}" + ("" if labels else "-unlabelled")
     spec["grid"] = grid
     if size is not None:
         spec["model"]["size"] = size
+    if not labels:
+        spec.setdefault("output", {})["labels"] = False
     if allow_flawed:  # timed as built even when some pieces get no joint or the replay finds stuck pieces
         joints = spec.setdefault("joints", {})
         joints["allow"] = sorted(set(joints.get("allow") or []) | {"loose", "welded"})
@@ -174,6 +179,18 @@ def fit(sizes, times):
     mx = sum(p[0] for p in pts) / len(pts)
     my = sum(p[1] for p in pts) / len(pts)
     return sum((x - mx) * (y - my) for x, y in pts) / sum((x - mx) ** 2 for x, _ in pts)
+
+
+def target_1024(tmp, args):
+    """The 1024-piece target (<= 60 s wall on 2 cores): each grid the issue names, at the default --jobs."""
+    size_note = f" at {args.torus_size:g} mm" if args.torus_size else ""
+    print(f"1024-piece target, default --jobs (every core){size_note}:")
+    runs = [(grid, True) for grid in TARGET_GRIDS] + ([(TARGET_GRIDS[-1], False)] if args.without_labels else [])
+    for grid, labels in runs:
+        r = run_child(variant("twisted-torus", grid, tmp, args.allow_flawed, args.torus_size, labels), jobs=0)
+        show(f"  twisted torus {'x'.join(map(str, grid))}{'' if labels else ' without labels'}", r)
+        if "error" not in r:
+            print("    stages (wall s): " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items() if v >= 0.05))
 
 
 # --- the plain manifold3d baseline for the bunny ---------------------------------------------------------------
@@ -271,10 +288,12 @@ def main():
     ap.add_argument("--no-examples", action="store_true", help="skip building every spec in specs/ for its joints")
     ap.add_argument("--allow-flawed", action="store_true",
                     help="time the twisted torus builds even when pieces lack joints or the puzzle is welded "
-                         "(joints.allow: [loose, welded]); the 4x4x16 and 4x4x64 tori need it with the current joints")
+                         "(joints.allow: [loose, welded]); no size needs it with the current joints")
     ap.add_argument("--torus-size", type=float, default=None, metavar="MM",
-                    help="model.size of every twisted torus build (default the spec's 150 mm, where 4x4x64 is refused "
-                         "as crowded; 300 builds)")
+                    help="model.size of every twisted torus build (default the spec's 150 mm, where both 1024-piece "
+                         "grids are refused as crowded; 300 builds)")
+    ap.add_argument("--without-labels", action="store_true",
+                    help="also build the 8x8x16 target once with output.labels false (what the ids cost)")
     ap.add_argument("--torus-jobs", type=int, default=1, metavar="N",
                     help="--jobs of the twisted torus builds at each size (default 1; the 256-piece build is also "
                          "run with --jobs 2)")
@@ -306,6 +325,8 @@ def main():
         if ok:  # one size alone gives its stage times (the exponents need two)
             print(f"per stage, seconds, and the fitted exponent k of t ~ n^k from {min(ok)} to {max(ok)} pieces:")
             stage_table(ok)
+        if 1024 in sizes:
+            target_1024(tmp, args)
         two = ({"error": "not run"} if args.no_torus or 256 not in sizes
                else run_child(variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size), jobs=2))
         if "error" not in two:
