@@ -159,3 +159,33 @@ def test_a_batch_beside_another_cluster_prints_no_port_warning(tmp_path, capfd):
     assert [r.ok for r in results] == [True]
     assert not [w for w in seen if "already in use" in str(w.message)]
     assert "already in use" not in capfd.readouterr().err
+
+
+def _sigint_disposition():
+    import signal
+
+    return {signal.SIG_IGN: "ignored", signal.SIG_DFL: "default"}.get(signal.getsignal(signal.SIGINT), "handled")
+
+
+@pytest.mark.slow
+def test_the_local_workers_ignore_ctrl_c_and_this_process_keeps_its_handler():
+    # Ctrl-C reaches the whole process group: a worker it caught printed a KeyboardInterrupt traceback from its
+    # event loop (asyncio's handler) at any moment of a batch, beside our "interrupted"; this process ends them itself
+    import signal
+
+    from volpuzzle.batch import _client
+
+    def mine(_signum, _frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGINT, mine)
+    try:
+        client, cluster = _client(1, None)
+        try:
+            assert signal.getsignal(signal.SIGINT) is mine
+            assert set(client.run(_sigint_disposition).values()) == {"ignored"}
+        finally:
+            client.close()
+            cluster.close()
+    finally:
+        signal.signal(signal.SIGINT, old)

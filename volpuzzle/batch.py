@@ -9,8 +9,11 @@ Each task is exactly `volpuzzle build SPEC` in a worker process, so each folder 
 measured times in report.json and report.md (timings_s, checks.overlap_time_s) differ from run to run.
 """
 
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -98,9 +101,28 @@ def _client(jobs, scheduler):
         # when another cluster (a notebook's, a second batch) holds it; any free port serves
         warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
         # one build per worker process at a time: a build keeps both of its cores busy on its own
-        cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=50, env={"VOLPUZZLE_NO_PROGRESS": "1"})
+        with _workers_deaf_to_ctrl_c():
+            cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=50, env={"VOLPUZZLE_NO_PROGRESS": "1"})
     return Client(cluster), cluster
+
+
+@contextlib.contextmanager
+def _workers_deaf_to_ctrl_c():
+    """Ctrl-C ignored in this process while the LocalCluster starts its worker processes, which keep it ignored for
+    good: an ignored signal stays ignored across exec, and neither Python nor asyncio then installs a handler of its
+    own. Ctrl-C reaches the whole process group, and a Dask worker it caught printed a KeyboardInterrupt traceback
+    (from its imports, or from its event loop at any time later), while this process ends the workers itself when
+    stopped. Blocking SIGINT instead does not reach them: Dask's event-loop thread, which starts them, has it
+    unblocked. A Ctrl-C in these ~2 s is lost; the next one stops the batch."""
+    if threading.current_thread() is not threading.main_thread():  # signal.signal works in the main thread only
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old if old is not None else signal.SIG_DFL)
 
 
 def run_batch(specs, output_root=None, jobs=None, scheduler=None, force=False, progress=None):
