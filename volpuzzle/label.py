@@ -128,10 +128,8 @@ def _outline(text):
     loop_of = np.asarray(loop_of, dtype=np.int64)
     p0, p1, p2 = verts[steps[:, 0]], verts[steps[:, 1]], verts[steps[:, 2]]
     is_line = steps[:, 1] == steps[:, 2]
-    # a Bezier segment stays within its control polygon; its chord error is ~ L^2 / (8 r)
-    d1, d2 = p1 - p0, p2 - p1
-    ctrl = np.sqrt(d1[:, 0] * d1[:, 0] + d1[:, 1] * d1[:, 1]) + np.sqrt(d2[:, 0] * d2[:, 0] + d2[:, 1] * d2[:, 1])
-    n = np.where(is_line, 1, np.clip(np.ceil(ctrl / np.sqrt(8.0 * _FLAT_EM * 0.05)), 2, 32)).astype(np.int64)
+    dd = p0 - 2.0 * p1 + p2  # second differences: a line's is 0, so it keeps its one step
+    n = np.where(is_line, 1, _flat_steps(np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1]), 2))
     step = np.repeat(np.arange(len(n)), n)
     k = np.arange(len(step)) - np.repeat(np.cumsum(n) - n, n) + 1
     t = (k / n[step])[:, None]
@@ -147,6 +145,15 @@ def _outline(text):
         return (), np.zeros((2, 2))
     allp = np.concatenate(loops)
     return tuple(loops), np.array([allp.min(axis=0), allp.max(axis=0)])
+
+
+def _flat_steps(dd, degree):
+    """Equal parameter steps (k,) int that keep a Bezier curve of `degree` within _FLAT_EM of its polygon, from the
+    largest second difference dd (k,) em of its control points. |C''| <= d (d - 1) dd, and a chord over a parameter
+    step h lies within h^2 |C''| / 8 of the curve (Filip, Magedson & Markot, CAGD 3, 1986; Wang's formula), so
+    n = sqrt(d (d - 1) dd / (8 _FLAT_EM)) steps suffice: a gentle curve gets few, a tight one many."""
+    n = np.ceil(np.sqrt(degree * (degree - 1) * np.asarray(dd, float) / (8.0 * _FLAT_EM)))
+    return np.clip(n, 1, 32).astype(np.int64)
 
 
 def _outline_slow(path):
@@ -167,8 +174,8 @@ def _outline_slow(path):
         elif code == Path.LINETO:
             cur.append(cp[-1])
         else:
-            ctrl = float(np.linalg.norm(np.diff(cp, axis=0), axis=1).sum())
-            n = int(np.clip(np.ceil(ctrl / np.sqrt(8.0 * _FLAT_EM * 0.05)), 2, 32))
+            dd = float(np.linalg.norm(cp[:-2] - 2.0 * cp[1:-1] + cp[2:], axis=1).max())
+            n = int(_flat_steps(np.array([dd]), len(cp) - 1)[0])
             cur.extend(seg(np.linspace(0.0, 1.0, n + 1)[1:]))
     if len(cur) > 2:
         loops.append(np.array(cur))
