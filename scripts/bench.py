@@ -6,6 +6,7 @@
   4x4x64 is refused as crowded (87 pieces, slabs about 5 mm thick along w, find no spot for a pin that keeps clear
   of their other joints, even with joints.radius 1), and 8x8x16 cells (about 4 mm across) hold no 1 mm pin, so the
   1024-piece figures need --torus-size 300 (all sizes then at 300 mm, more triangles per piece);
+- the 32-piece target at the default --jobs, as a user builds it (the series above runs at --torus-jobs);
 - the 1024-piece target itself: both grids the issue names (4x4x64 and 8x8x16) at the default --jobs, as a user
   builds them (--without-labels: 8x8x16 once more with output.labels false, to show what the ids cost);
 - --jobs 1 against --jobs 2 on the 256-piece build, and the most any split could gain: --jobs 1 already keeps more
@@ -325,6 +326,9 @@ def main():
         if ok:  # one size alone gives its stage times (the exponents need two)
             print(f"per stage, seconds, and the fitted exponent k of t ~ n^k from {min(ok)} to {max(ok)} pieces:")
             stage_table(ok)
+        if 32 in sizes:  # the warm 32-piece target, as a user builds it (the table above is at --torus-jobs)
+            r = run_child(variant("twisted-torus", GRIDS[32], tmp, args.allow_flawed, args.torus_size), jobs=0)
+            show(f"32-piece target (<= 3 s warm), twisted torus 2x2x8{size_note}, default --jobs", r)
         if 1024 in sizes:
             target_1024(tmp, args)
         two = ({"error": "not run"} if args.no_torus or 256 not in sizes
