@@ -114,7 +114,7 @@ def _workers_deaf_to_ctrl_c():
     own. Ctrl-C reaches the whole process group, and a Dask worker it caught printed a KeyboardInterrupt traceback
     (from its imports, or from its event loop at any time later), while this process ends the workers itself when
     stopped. Blocking SIGINT instead does not reach them: Dask's event-loop thread, which starts them, has it
-    unblocked. A Ctrl-C in these ~2 s is lost; the next one stops the batch."""
+    unblocked. A Ctrl-C in this second (the workers spawn for ~0.4 s of it) is lost; the next one stops the batch."""
     if threading.current_thread() is not threading.main_thread():  # signal.signal works in the main thread only
         yield
         return
