@@ -309,7 +309,8 @@ def main():
                     help="model.size of every twisted torus build (default the spec's 150 mm, where both 1024-piece "
                          "grids are refused as crowded; 300 builds)")
     ap.add_argument("--repeat", type=int, default=1, metavar="N",
-                    help="build each target (32 and 1024 pieces, default --jobs) N times and show the median run")
+                    help="build each twisted torus (the series, --jobs 2 at 256, the targets) N times and show the "
+                         "median run")
     ap.add_argument("--without-labels", action="store_true",
                     help="also build the 8x8x16 target once with output.labels false (what the ids cost)")
     ap.add_argument("--torus-jobs", type=int, default=1, metavar="N",
@@ -336,8 +337,8 @@ def main():
         results = {}
         size_note = f" at {args.torus_size:g} mm" if args.torus_size else ""
         for n in sizes:
-            results[n] = run_child(variant("twisted-torus", GRIDS[n], tmp, args.allow_flawed, args.torus_size),
-                                   jobs=args.torus_jobs)
+            results[n] = run_median(variant("twisted-torus", GRIDS[n], tmp, args.allow_flawed, args.torus_size),
+                                    args.repeat, jobs=args.torus_jobs)
             show(f"twisted torus {'x'.join(map(str, GRIDS[n]))}{size_note}, --jobs {args.torus_jobs}", results[n])
         ok = {n: r for n, r in results.items() if "error" not in r}
         if ok:  # one size alone gives its stage times (the exponents need two)
@@ -350,7 +351,8 @@ def main():
         if 1024 in sizes:
             target_1024(tmp, args)
         two = ({"error": "not run"} if args.no_torus or 256 not in sizes
-               else run_child(variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size), jobs=2))
+               else run_median(variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size),
+                               args.repeat, jobs=2))
         if "error" not in two:
             show(f"twisted torus 4x4x16{size_note}, --jobs 2", two)
         if "error" not in two and args.torus_jobs == 1 and "error" not in results.get(256, {"error": 1}):
@@ -368,6 +370,18 @@ def main():
                   f"split of its {one['cpu'] + one['cpu_children']:.1f} CPU s can be more than {cores / busy:.2f}x "
                   f"faster; --jobs 2 spent {two['cpu'] + two['cpu_children']:.1f} CPU s (its second process "
                   f"starts and reads the pieces too)")
+            if args.repeat > 1:
+                # the medians above come from runs minutes apart; a pair run back to back shares the machine's mood
+                spec = variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size)
+                ratios = []
+                for _ in range(args.repeat):
+                    a, b = run_child(spec, jobs=1), run_child(spec, jobs=2)
+                    if "error" not in a and "error" not in b:
+                        ratios.append(a["wall"] / b["wall"])
+                if ratios:
+                    print(f"  --jobs 1 then --jobs 2, back to back, {len(ratios)} times: "
+                          f"{', '.join(f'{x:.2f}' for x in ratios)}x faster; median "
+                          f"{sorted(ratios)[(len(ratios) - 1) // 2]:.2f}x")
         if not args.no_examples:
             print("every example in specs/, as written:")
             for spec in sorted((REPO / "specs").glob("*.yaml")):
