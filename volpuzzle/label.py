@@ -128,7 +128,8 @@ def _outline(text):
     loop_of = np.asarray(loop_of, dtype=np.int64)
     p0, p1, p2 = verts[steps[:, 0]], verts[steps[:, 1]], verts[steps[:, 2]]
     is_line = steps[:, 1] == steps[:, 2]
-    dd = p0 - 2.0 * p1 + p2  # second differences: a line's is 0, so it keeps its one step
+    # a line is stored as (prev, end, end), whose second difference is not 0: it keeps its one step by is_line
+    dd = p0 - 2.0 * p1 + p2
     n = np.where(is_line, 1, _flat_steps(np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1]), 2))
     step = np.repeat(np.arange(len(n)), n)
     k = np.arange(len(step)) - np.repeat(np.cumsum(n) - n, n) + 1
