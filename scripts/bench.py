@@ -101,9 +101,14 @@ def run_median(spec, repeat, jobs=1):
     good = sorted((r for r in runs if "error" not in r), key=lambda r: r["wall"])
     if not good:
         return runs[0]
-    out = dict(good[(len(good) - 1) // 2])
+    out = dict(_median(good))
     out["walls"] = [r["wall"] for r in good]
     return out
+
+
+def _median(ordered):
+    """The middle item of a sorted list (the lower of the two middle ones)."""
+    return ordered[(len(ordered) - 1) // 2]
 
 
 def run_child(spec, jobs=1, env=None):
@@ -196,14 +201,13 @@ def fit(sizes, times):
     return sum((x - mx) * (y - my) for x, y in pts) / sum((x - mx) ** 2 for x, _ in pts)
 
 
-def target_1024(tmp, args):
-    """The 1024-piece target (<= 60 s wall on 2 cores): each grid the issue names, at the default --jobs."""
-    size_note = f" at {args.torus_size:g} mm" if args.torus_size else ""
+def target_1024(torus, args, size_note):
+    """The 1024-piece target (<= 60 s wall on 2 cores): each grid the issue names, at the default --jobs. torus:
+    main's twisted-torus spec maker (grid, labels) -> path."""
     print(f"1024-piece target, default --jobs (every core){size_note}:")
     runs = [(grid, True) for grid in TARGET_GRIDS] + ([(TARGET_GRIDS[-1], False)] if args.without_labels else [])
     for grid, labels in runs:
-        r = run_median(variant("twisted-torus", grid, tmp, args.allow_flawed, args.torus_size, labels), args.repeat,
-                       jobs=0)
+        r = run_median(torus(grid, labels), args.repeat, jobs=0)
         show(f"  twisted torus {'x'.join(map(str, grid))}{'' if labels else ' without labels'}", r)
         if "error" not in r:
             print("    stages (wall s): " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items() if v >= 0.05))
@@ -336,23 +340,24 @@ def main():
                  else [32, 256, 1024])
         results = {}
         size_note = f" at {args.torus_size:g} mm" if args.torus_size else ""
+
+        def torus(grid, labels=True):
+            return variant("twisted-torus", grid, tmp, args.allow_flawed, args.torus_size, labels)
+
         for n in sizes:
-            results[n] = run_median(variant("twisted-torus", GRIDS[n], tmp, args.allow_flawed, args.torus_size),
-                                    args.repeat, jobs=args.torus_jobs)
+            results[n] = run_median(torus(GRIDS[n]), args.repeat, jobs=args.torus_jobs)
             show(f"twisted torus {'x'.join(map(str, GRIDS[n]))}{size_note}, --jobs {args.torus_jobs}", results[n])
         ok = {n: r for n, r in results.items() if "error" not in r}
         if ok:  # one size alone gives its stage times (the exponents need two)
             print(f"per stage, seconds, and the fitted exponent k of t ~ n^k from {min(ok)} to {max(ok)} pieces:")
             stage_table(ok)
         if 32 in sizes:  # the warm 32-piece target, as a user builds it (the table above is at --torus-jobs)
-            r = run_median(variant("twisted-torus", GRIDS[32], tmp, args.allow_flawed, args.torus_size), args.repeat,
-                           jobs=0)
+            r = run_median(torus(GRIDS[32]), args.repeat, jobs=0)
             show(f"32-piece target (<= 3 s warm), twisted torus 2x2x8{size_note}, default --jobs", r)
         if 1024 in sizes:
-            target_1024(tmp, args)
+            target_1024(torus, args, size_note)
         two = ({"error": "not run"} if args.no_torus or 256 not in sizes
-               else run_median(variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size),
-                               args.repeat, jobs=2))
+               else run_median(torus(GRIDS[256]), args.repeat, jobs=2))
         if "error" not in two:
             show(f"twisted torus 4x4x16{size_note}, --jobs 2", two)
         if "error" not in two and args.torus_jobs == 1 and "error" not in results.get(256, {"error": 1}):
@@ -372,7 +377,7 @@ def main():
                   f"starts and reads the pieces too)")
             if args.repeat > 1:
                 # the medians above come from runs minutes apart; a pair run back to back shares the machine's mood
-                spec = variant("twisted-torus", GRIDS[256], tmp, args.allow_flawed, args.torus_size)
+                spec = torus(GRIDS[256])
                 ratios = []
                 for _ in range(args.repeat):
                     a, b = run_child(spec, jobs=1), run_child(spec, jobs=2)
@@ -381,7 +386,7 @@ def main():
                 if ratios:
                     print(f"  --jobs 1 then --jobs 2, back to back, {len(ratios)} times: "
                           f"{', '.join(f'{x:.2f}' for x in ratios)}x faster; median "
-                          f"{sorted(ratios)[(len(ratios) - 1) // 2]:.2f}x")
+                          f"{_median(sorted(ratios)):.2f}x")
         if not args.no_examples:
             print("every example in specs/, as written:")
             for spec in sorted((REPO / "specs").glob("*.yaml")):
