@@ -430,7 +430,12 @@ def test_faces_and_joints_by_cell_are_what_the_whole_lists_give():
     tiling = tile(vol, (2, 2, 2))
     joints = J.plan_joints(tiling, fmap)
     touching = J.joints_by_cell(joints)
+    per_cell = J.cell_joints(joints)
+    assert sum(map(len, per_cell.values())) == 2 * len(joints)  # each joint with both of its cells, once
     for index, cell in tiling.cells.items():
+        # the report's and the mesh cutter's per-piece joints from the cell's own list, as from the whole list
+        assert J.pieces_joints(per_cell.get(tuple(index), []), index) == J.pieces_joints(joints, index)
+        assert J.piece_joints_report(per_cell.get(tuple(index), []), index) == J.piece_joints_report(joints, index)
         # the tiling's per-cell index gives what a scan of all its faces gives, in the same order
         scan = [(f, side) for f in tiling.faces for side, end in ((+1, f.lower), (-1, f.upper)) if end == index]
         assert tiling.faces_of(index) == scan

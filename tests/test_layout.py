@@ -181,6 +181,13 @@ def test_pin_triangles_cover_the_pin_and_nothing_else():
     area = mesh.area_faces[flags.astype(bool)].sum()
     assert area == pytest.approx(2 * np.pi * r * length + np.pi * r * r, rel=0.02)  # side and tip, not the cube
     assert pin_triangles([piece], [SimpleNamespace(**{**vars(joint), "pin_cell": (1, 0, 0)})]) == {}
+    # among many pieces and joints, each piece gets its own pins' triangles: a pin of another cell and a dowel of its
+    # own cell change nothing
+    other = Piece("p1-0-0", (1, 0, 0), mesh, float(mesh.volume), float(mesh.volume), len(mesh.faces))
+    many = [SimpleNamespace(**{**vars(joint), "pin_cell": (1, 0, 0), "center": np.array([0.0, 0.0, -50.0])}),
+            SimpleNamespace(**{**vars(joint), "style": "dowel"}), joint]
+    both = pin_triangles([other, piece], many)
+    assert np.array_equal(both["p0-0-0"], flags) and not both["p1-0-0"].any()
 
 
 @pytest.mark.slow

@@ -786,8 +786,12 @@ def pin_triangles(pieces, joints):
     from .joint import outer_radius
 
     out = {}
+    pins_of = {}  # pin cell -> its pins: one pass, not one over every joint per piece (1 s at 1024 pieces)
+    for j in joints:
+        if j.style == "pin":
+            pins_of.setdefault(tuple(j.pin_cell), []).append(j)
     for p in pieces:
-        mine = [j for j in joints if j.style == "pin" and tuple(j.pin_cell) == tuple(p.cell)]
+        mine = pins_of.get(tuple(p.cell))
         if not mine:
             continue
         # not mesh.triangles_center: that would keep (m, 3, 3) triangles cached on every piece to the end

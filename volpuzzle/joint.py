@@ -871,6 +871,13 @@ def joints_by_cell(joints):
     return out
 
 
+def cell_joints(joints):
+    """{cell index: its joints (in `joints` order)}, pin side or hole side: joints_by_cell as the joints themselves,
+    for loops over the pieces that would otherwise scan every joint for each piece (pieces x joints)."""
+    joints = list(joints or ())
+    return {cell: [joints[k] for k in ks] for cell, ks in joints_by_cell(joints).items()}
+
+
 def joint_graph(piece_ids, edges):
     """piece_ids: iterable of ids; edges: iterable of (id, id) -> (parts: list of sorted id lists, largest first;
     loose: sorted ids with no joint)."""

@@ -1140,12 +1140,12 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
     None}, mm^3 removed). workers: a volpuzzle.workers.Workers that labels some of the pieces (same results)."""
     import dataclasses
 
-    from .joint import joints_by_cell
+    from .joint import cell_joints
     from .workers import MeshRef, map_pieces
 
     poses = poses or {}
     joints = list(joints or ())
-    touching = {cell: [joints[k] for k in ks] for cell, ks in joints_by_cell(joints).items()}
+    touching = cell_joints(joints)
     items = []
     for k, p in enumerate(pieces):
         pose = poses.get(p.id)

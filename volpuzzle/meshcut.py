@@ -666,11 +666,12 @@ def joint_graph_problem(piece_ids, joints, records):
 def add_joints(pieces, cells, joints):
     """{id: Manifold} merged pieces -> {id: Manifold} with their pins added and holes cut."""
     from .geometry import boolean
-    from .joint import hole_solid, pieces_joints, pin_solid
+    from .joint import cell_joints, hole_solid, pieces_joints, pin_solid
 
     out = {}
+    touching = cell_joints(joints)
     for pid, body in pieces.items():
-        for j, role in pieces_joints(joints, cells[pid]):
+        for j, role in pieces_joints(touching.get(tuple(cells[pid]), ()), cells[pid]):
             if role == "pin":
                 body = boolean(body, pin_solid(j), "union", pid)
             else:

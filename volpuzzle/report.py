@@ -65,16 +65,17 @@ def fit(spec, joints, face_clearance):
 def piece_entries(stages, placements, ext):
     """report.json "pieces": one entry per piece with its file, plate, label, joints and print pose."""
     from .export import report_piece_entry
-    from .joint import piece_joints_report
+    from .joint import cell_joints, piece_joints_report
     from .layout import print_entry
 
     place_of = {pl.name: pl for pl in placements}
     entries = []
+    touching = cell_joints(stages.joints)
     for p in stages.pieces:
         entry = report_piece_entry(p, f"pieces/{p.id}.{ext}")
         entry["plate"] = place_of[p.id].plate if p.id in place_of else None
         entry["label"] = stages.labels.get(p.id)
-        entry["joints"] = piece_joints_report(stages.joints, p.cell)
+        entry["joints"] = piece_joints_report(touching.get(tuple(p.cell), ()), p.cell)
         entry["print"] = print_entry(p, stages.poses.get(p.id), place_of.get(p.id))
         entries.append(entry)
     return entries
