@@ -450,6 +450,61 @@ def test_side_distance_on_a_box_is_the_distance_to_the_nearest_other_face():
     assert np.isinf(sides.distance((0, 0, 0), (0, 1), np.array([[20.0, 15.0, 10.0]]), beyond=5.0)).all()
 
 
+def test_side_faces_two_cells_share_are_evaluated_once_and_as_each_cell_alone_gives_them():
+    # a face the cell beside evaluated is reused: the same samples each cell finds evaluating its own six alone
+    vol = ring(twist=np.pi / 2)
+    t = _tiling(vol, (2, 2, 4), (2,))
+    fmap = _map(vol)
+    calls = []
+    sides = J._Sides(t, fmap)
+    plain = fmap.evaluate_with_jacobian
+    sides.fmap = type("Counting", (), {"evaluate_with_jacobian": lambda _, uvw: calls.append(len(uvw)) or plain(uvw)})()
+    for idx in t.cells:
+        alone = J._Sides(t, fmap)
+        for axis in range(3):
+            for end in (0, 1):
+                for got, want in zip(sides._face(idx, axis, end), alone._face(idx, axis, end), strict=True):
+                    assert np.array_equal(got, want)
+    # every distinct face (its axis, place and parameter box) evaluated once: fewer than the cells' 6 each, as the
+    # inner faces are shared; the seam's two sides have parameters of their own and are two faces
+    faces = {(a, round(float(c.box[e, a]), 12), *(round(float(c.box[k, b]), 12) for b in range(3) if b != a
+                                                 for k in (0, 1)))
+             for c in t.cells.values() for a in range(3) for e in (0, 1)}
+    assert sum(calls) == len(faces) * sides.count ** 2 < 6 * len(t.cells) * sides.count ** 2
+
+
+def test_face_shapes_of_all_faces_at_once_are_each_faces_own():
+    # _face_shapes works on every face at once and evaluates the upper cell only where its points differ (the seam):
+    # each face's figures must be what its own points give
+    vol = ring(twist=np.pi / 2)
+    t = _tiling(vol, (2, 2, 4), (2,))
+    fmap = _map(vol)
+    lengths = J._measure(t, fmap)
+    shapes = J._face_shapes(t, fmap, lengths, 1.5)
+    assert [s.face for s in shapes] == list(t.faces) and any(f.seam is not None for f in t.faces)
+    for shape in shapes:
+        f = shape.face
+        for side, idx in ((-1, f.lower), (+1, f.upper)):
+            x, jac = fmap.evaluate_with_jacobian(shape.uvw[side])
+            assert np.array_equal(shape.jac[side], jac)
+            assert np.array_equal(shape.lens[side], J._lens_at(lengths, idx, shape.fr[side]))
+            rows = np.transpose(jac, (0, 2, 1))
+            assert np.allclose(shape.tangents[side], rows / np.linalg.norm(rows, axis=2)[..., None], atol=1e-12)
+        b, c = (f.axis + 1) % 3, (f.axis + 2) % 3
+        nrm = np.cross(shape.jac[-1][:, :, b], shape.jac[-1][:, :, c])
+        assert np.array_equal(shape.x, x if f.seam is None else fmap.evaluate(shape.uvw[-1]))
+        assert np.allclose(np.abs(np.einsum("ki,ki->k", shape.nrm, nrm / np.linalg.norm(nrm, axis=1)[:, None])), 1.0)
+        assert np.allclose(np.linalg.norm(shape.ring, axis=2).max(axis=1), 1.2 * 1.5, rtol=0.2)
+    # default_sizes measures the same faces at their centres
+    sides, depths = J._face_sides(lengths, t.faces)
+    for n, f in enumerate(t.faces):
+        b, c = (f.axis + 1) % 3, (f.axis + 2) % 3
+        lo = J._lens_at(lengths, f.lower, np.array([[1.0 if a == f.axis else 0.5 for a in range(3)]]))[0]
+        up = J._lens_at(lengths, f.upper, np.array([[0.0 if a == f.axis else 0.5 for a in range(3)]]))[0]
+        assert sides[n] == min(lo[b], lo[c], up[b], up[c])
+        assert list(depths[2 * n:2 * n + 2]) == [J._center_len(lengths, idx, f.axis) for idx in (f.lower, f.upper)]
+
+
 def test_side_distance_beside_a_face_goes_straight_to_its_rim():
     # one face, its samples on a 3 x 3 grid in z = 0; the rim samples are not inside it
     g = np.array([0.0, 1.0, 2.0])

@@ -212,17 +212,7 @@ _AFTER = [[_cyclic(a)[k] for a in range(3)] for k in (0, 1)]  # the axes b, c af
 def _lens_at(cell_lengths, idx, fr):
     """Lengths (n, 3) mm of cell idx's parameter lines along each axis through fractions fr (n, 3), bilinear in the
     grid: the three axes at once (a face's points ask for all three)."""
-    fr = np.asarray(fr, dtype=float)
-    tab = cell_lengths.lengths[idx]  # (3, G, G)
-    g = len(_GRID) - 1
-    x = np.clip(fr[:, _AFTER[0]], 0.0, 1.0) * g  # column a: the fractions along the two axes after a
-    y = np.clip(fr[:, _AFTER[1]], 0.0, 1.0) * g
-    i = np.minimum(x.astype(int), g - 1)
-    j = np.minimum(y.astype(int), g - 1)
-    tx, ty = x - i, y - j
-    a = np.arange(3)[None, :]
-    return ((1 - tx) * (1 - ty) * tab[a, i, j] + tx * (1 - ty) * tab[a, i + 1, j] + (1 - tx) * ty * tab[a, i, j + 1]
-            + tx * ty * tab[a, i + 1, j + 1])
+    return _lens_at_faces(cell_lengths.lengths[idx][None], np.asarray(fr, dtype=float)[None])[0]
 
 
 def _center_len(cell_lengths, idx, a):
@@ -249,14 +239,21 @@ def _measure(tiling, fmap):
     return _Geometry({cell.index: seg[n] for n, cell in enumerate(cells)})
 
 
-def _face_side(cell_lengths, f):
-    """Shorter in-face side of face f through its centre, mm."""
-    b, c = _cyclic(f.axis)
-    fr = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
-    fr[0, f.axis], fr[1, f.axis] = 1.0, 0.0
-    lo = _lens_at(cell_lengths, f.lower, fr[:1])[0, [b, c]]
-    up = _lens_at(cell_lengths, f.upper, fr[1:])[0, [b, c]]
-    return float(min(lo.min(), up.min()))
+def _face_sides(cell_lengths, faces):
+    """(faces,) mm: the shorter in-face side of each face through its centre, in either of its cells; and (2 faces,)
+    mm: the depth of both its cells across it at their centres."""
+    n = len(faces)
+    axes = np.array([f.axis for f in faces])
+    fr = np.full((2, n, 2, 3), 0.5)  # (lower | upper cell, face, face centre | cell centre, uvw fractions)
+    fr[0, np.arange(n), 0, axes] = 1.0
+    fr[1, np.arange(n), 0, axes] = 0.0
+    lens = [_lens_at_faces(np.stack([cell_lengths.lengths[getattr(f, end)] for f in faces]), fr[k])
+            for k, end in enumerate(("lower", "upper"))]  # (faces, 2, 3) each
+    bc = np.array([_cyclic(a) for a in axes])
+    rows = np.arange(n)[:, None]
+    side = np.minimum(lens[0][rows, 0, bc].min(axis=1), lens[1][rows, 0, bc].min(axis=1))
+    depth = np.stack([lens[0][np.arange(n), 1, axes], lens[1][np.arange(n), 1, axes]], axis=1).ravel()
+    return side, depth
 
 
 def _round_down(x, step=0.1):
@@ -269,9 +266,8 @@ def default_sizes(tiling, fmap, _lengths=None):
     rounded down to 0.1 mm. Faces too small for these get smaller pins of their own (place_joints)."""
     cell_lengths = _lengths or _measure(tiling, fmap)
     if tiling.faces:
-        side = float(np.median([_face_side(cell_lengths, f) for f in tiling.faces]))
-        depth = float(np.median([_center_len(cell_lengths, idx, f.axis) for f in tiling.faces
-                                 for idx in (f.lower, f.upper)]))
+        sides, depths = _face_sides(cell_lengths, tiling.faces)
+        side, depth = float(np.median(sides)), float(np.median(depths))
     else:
         side = depth = min(_center_len(cell_lengths, idx, a) for idx in tiling.cells for a in range(3))
     radius = min(max(_round_down(0.12 * side), MIN_RADIUS), DEFAULT_MAX_RADIUS)
@@ -382,38 +378,68 @@ def _face_shapes(tiling, fmap, cell_lengths, reach_max):
         per.append((f, fr, fr_up, uvw, uvw_up))
     if not per:
         return out
+    n_faces = len(per)
     x, jac = fmap.evaluate_with_jacobian(np.concatenate([p[3] for p in per]))
-    _, jac_up = fmap.evaluate_with_jacobian(np.concatenate([p[4] for p in per]))
-    x, jac, jac_up = x.reshape(-1, k, 3), jac.reshape(-1, k, 3, 3), jac_up.reshape(-1, k, 3, 3)
-    nrms, rings = [], []
-    for n, (f, _fr, _fr_up, uvw, _uvw_up) in enumerate(per):
-        a = f.axis
+    x, jac = x.reshape(-1, k, 3), jac.reshape(-1, k, 3, 3)
+    # the upper cell sees the same points, but across a seam (and where lo + (hi - lo) rounds off hi): only those
+    # are evaluated again
+    again = [n for n, p in enumerate(per) if not np.array_equal(p[3], p[4])]
+    jac_up = jac.copy()
+    if again:
+        jac_up[again] = fmap.evaluate_with_jacobian(np.concatenate([per[n][4] for n in again]))[1].reshape(-1, k, 3, 3)
+    # every face at once, a group per axis (which sets the in-face axes b, c): a loop over 2816 faces was 2 s of the
+    # 1024-piece build's joint stage
+    uvw = np.stack([p[3] for p in per])
+    boxes = np.stack([tiling.cells[p[0].lower].box for p in per])  # (faces, 2, 3)
+    axes = np.array([p[0].axis for p in per])
+    nrm = np.empty((n_faces, k, 3))
+    usable = np.empty((n_faces, k), bool)
+    rings = np.empty((n_faces, k, 12, 3))
+    for a in range(3):
+        sel = np.flatnonzero(axes == a)
+        if not len(sel):
+            continue
         b, c = _cyclic(a)
-        j = jac[n]
-        nrm = np.cross(j[:, :, b], j[:, :, c])
-        det = np.einsum("ki,ki->k", j[:, :, a], nrm)
+        j = jac[sel]
+        across = np.cross(j[..., b], j[..., c])
+        det = np.einsum("fki,fki->fk", j[..., a], across)
         sign = np.where(np.abs(det) > 1e-12, np.sign(det), orientation)
-        size = np.linalg.norm(nrm, axis=1)
-        nrm = sign[:, None] * nrm / np.maximum(size, 1e-300)[:, None]
-        nrms.append((nrm, size > 1e-9 * max(float(size.max()), 1e-300)))
+        size = np.linalg.norm(across, axis=2)
+        nrm[sel] = sign[..., None] * across / np.maximum(size, 1e-300)[..., None]
+        usable[sel] = size > 1e-9 * np.maximum(size.max(axis=1), 1e-300)[:, None]
         # a disc of the largest pin's footprint on the face, to measure how far the face bulges from its tangent plane
-        p = np.repeat(uvw[:, None, :], 12, axis=1)
+        p = np.repeat(uvw[sel][:, :, None, :], 12, axis=2)
         for ax, col in ((b, 0), (c, 1)):
-            step = 1.2 * reach_max / np.maximum(np.linalg.norm(j[:, :, ax], axis=1), 1e-12)
-            p[:, :, ax] += ring[None, :, col] * step[:, None]
-        lo, hi = tiling.cells[f.lower].box
-        rings.append(np.clip(p, lo, hi).reshape(-1, 3))
-    xr = fmap.evaluate(np.concatenate(rings)).reshape(len(per), k, 12, 3)
-    for n, (f, fr, fr_up, uvw, uvw_up) in enumerate(per):
-        nrm, usable = nrms[n]
-        tangents = {}
-        for side, jj in ((-1, jac[n]), (+1, jac_up[n])):
-            t = np.transpose(jj, (0, 2, 1))  # (k, axis, xyz)
-            tangents[side] = t / np.maximum(np.linalg.norm(t, axis=2), 1e-300)[:, :, None]
-        lens = {side: _lens_at(cell_lengths, idx, frs) for side, idx, frs in ((-1, f.lower, fr), (+1, f.upper, fr_up))}
-        out.append(_FaceShape(n, f, {-1: fr, +1: fr_up}, {-1: uvw, +1: uvw_up}, x[n], nrm, tangents, lens,
-                              xr[n] - x[n][:, None, :], usable, {-1: jac[n], +1: jac_up[n]}))
+            step = 1.2 * reach_max / np.maximum(np.linalg.norm(j[..., ax], axis=2), 1e-12)
+            p[..., ax] += ring[None, None, :, col] * step[..., None]
+        rings[sel] = np.clip(p, boxes[sel, 0][:, None, None, :], boxes[sel, 1][:, None, None, :])
+    xr = fmap.evaluate(rings.reshape(-1, 3)).reshape(n_faces, k, 12, 3)
+    tangents, lens = {}, {}
+    for side, jj, cells, fr in ((-1, jac, [p[0].lower for p in per], np.stack([p[1] for p in per])),
+                                (+1, jac_up, [p[0].upper for p in per], np.stack([p[2] for p in per]))):
+        t = np.transpose(jj, (0, 1, 3, 2))  # (face, k, axis, xyz)
+        tangents[side] = t / np.maximum(np.linalg.norm(t, axis=3), 1e-300)[..., None]
+        lens[side] = _lens_at_faces(np.stack([cell_lengths.lengths[idx] for idx in cells]), fr)
+    for n, (f, fr, fr_up, uvw_n, uvw_up) in enumerate(per):
+        out.append(_FaceShape(n, f, {-1: fr, +1: fr_up}, {-1: uvw_n, +1: uvw_up}, x[n], nrm[n],
+                              {-1: tangents[-1][n], +1: tangents[+1][n]}, {-1: lens[-1][n], +1: lens[+1][n]},
+                              xr[n] - x[n][:, None, :], usable[n], {-1: jac[n], +1: jac_up[n]}))
     return out
+
+
+def _lens_at_faces(tabs, fr):
+    """_lens_at of many faces at once: tabs (faces, 3, G, G) of each face's cell, fractions fr (faces, k, 3) ->
+    (faces, k, 3) mm, the same arithmetic."""
+    g = len(_GRID) - 1
+    x = np.clip(fr[..., _AFTER[0]], 0.0, 1.0) * g
+    y = np.clip(fr[..., _AFTER[1]], 0.0, 1.0) * g
+    i = np.minimum(x.astype(int), g - 1)
+    j = np.minimum(y.astype(int), g - 1)
+    tx, ty = x - i, y - j
+    f = np.arange(len(tabs))[:, None, None]
+    a = np.arange(3)[None, None, :]
+    return ((1 - tx) * (1 - ty) * tabs[f, a, i, j] + tx * (1 - ty) * tabs[f, a, i + 1, j]
+            + (1 - tx) * ty * tabs[f, a, i, j + 1] + tx * ty * tabs[f, a, i + 1, j + 1])
 
 
 def _directed(shape, direction=None):
@@ -529,6 +555,9 @@ def _split_dirs(tiling, fmap, plan):
     return out
 
 
+_SIX_FACES = tuple((ax, e) for ax in range(3) for e in (0, 1))  # a cell's faces: (axis, 0 min side | 1 max side)
+
+
 class _Sides:
     """The real side faces of the cells, sampled in mm, to measure a placed joint against: _fits judges a point by the
     lengths of the cell's parameter lines, as if F ran at an even speed along them and the cell were straight; near a
@@ -537,34 +566,46 @@ class _Sides:
     def __init__(self, tiling, fmap, count=16):
         self.tiling, self.fmap, self.count = tiling, fmap, count
         self._faces, self._clear = {}, {}
+        self._shared = {}  # a face's parameter box -> its samples: two cells share a face, evaluated once
+        g = np.linspace(0.0, 1.0, count)
+        self._st = np.repeat(g, count), np.tile(g, count)
+        edge = np.zeros((count, count), bool)
+        edge[[0, -1], :] = edge[:, [0, -1]] = True
+        self._inner = ~edge.ravel()
+        self._inner.setflags(write=False)
 
     def _face(self, idx, axis, end):
         """Points (m, 3), unit normals (m, 3) (zero where collapsed), interior (m,) and box (2, 3) of a cell's face
-        (all six of a cell evaluated at once, on first use)."""
+        (all six of a cell evaluated at once, on first use; a face the cell beside it evaluated is taken from it)."""
         idx = tuple(idx)
         if idx not in self._faces:
             lo, hi = self.tiling.cells[idx].box
-            g = np.linspace(0.0, 1.0, self.count)
-            m = self.count * self.count
-            uvw = np.empty((6, m, 3))
-            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
+            keys = {}
+            for ax, e in _SIX_FACES:
                 b, c = _cyclic(ax)
-                uvw[f, :, ax] = hi[ax] if e else lo[ax]
-                uvw[f, :, b] = lo[b] + np.repeat(g, self.count) * (hi[b] - lo[b])
-                uvw[f, :, c] = lo[c] + np.tile(g, self.count) * (hi[c] - lo[c])
-            x, jac = self.fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
-            x, jac = x.reshape(6, m, 3), jac.reshape(6, m, 3, 3)
-            edge = np.zeros((self.count, self.count), bool)
-            edge[[0, -1], :] = edge[:, [0, -1]] = True
-            faces = {}
-            for f, (ax, e) in enumerate((ax, e) for ax in range(3) for e in (0, 1)):
-                b, c = _cyclic(ax)
-                nrm = np.cross(jac[f, :, :, b], jac[f, :, :, c])
-                size = np.linalg.norm(nrm, axis=1)
-                real = size > 1e-9 * max(float(size.max()), 1e-300)
-                nrm = np.where(real[:, None], nrm / np.maximum(size, 1e-300)[:, None], 0.0)
-                faces[(ax, e)] = (x[f], nrm, ~edge.ravel(), np.array([x[f].min(axis=0), x[f].max(axis=0)]))
-            self._faces[idx] = faces
+                keys[(ax, e)] = (ax, float(hi[ax] if e else lo[ax]), float(lo[b]), float(hi[b]), float(lo[c]),
+                                 float(hi[c]))
+            missing = [f for f in _SIX_FACES if keys[f] not in self._shared]
+            if missing:
+                m = self.count * self.count
+                uvw = np.empty((len(missing), m, 3))
+                for f, (ax, e) in enumerate(missing):
+                    b, c = _cyclic(ax)
+                    uvw[f, :, ax] = hi[ax] if e else lo[ax]
+                    uvw[f, :, b] = lo[b] + self._st[0] * (hi[b] - lo[b])
+                    uvw[f, :, c] = lo[c] + self._st[1] * (hi[c] - lo[c])
+                x, jac = self.fmap.evaluate_with_jacobian(uvw.reshape(-1, 3))
+                n = len(missing)
+                x, jac = x.reshape(n, m, 3), jac.reshape(n, m, 3, 3).transpose(0, 3, 1, 2)  # (face, d/d axis, m, 3)
+                across = np.array([_cyclic(ax) for ax, _ in missing])
+                nrm = np.cross(jac[np.arange(n), across[:, 0]], jac[np.arange(n), across[:, 1]])
+                size = np.linalg.norm(nrm, axis=2)
+                real = size > 1e-9 * np.maximum(size.max(axis=1), 1e-300)[:, None]
+                nrm = np.where(real[..., None], nrm / np.maximum(size, 1e-300)[..., None], 0.0)
+                boxes = np.stack([x.min(axis=1), x.max(axis=1)], axis=1)
+                for f, face in enumerate(missing):
+                    self._shared[keys[face]] = (x[f], nrm[f], self._inner, boxes[f])
+            self._faces[idx] = {f: self._shared[keys[f]] for f in _SIX_FACES}
         return self._faces[idx][(axis, end)]
 
     def distance(self, idx, keep_out, p, beyond=np.inf):
