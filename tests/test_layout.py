@@ -172,7 +172,8 @@ def test_pin_triangles_cover_the_pin_and_nothing_else():
         [10, 10, 19])
     mesh = to_trimesh(body)
     piece = Piece("p0-0-0", (0, 0, 0), mesh, float(mesh.volume), float(mesh.volume), len(mesh.faces))
-    joint = SimpleNamespace(style="pin", shape="cylinder", pin_cell=(0, 0, 0), center=np.array([10.0, 10.0, 20.0]),
+    joint = SimpleNamespace(style="pin", shape="cylinder", pin_cell=(0, 0, 0), hole_cell=(0, 0, 1),
+                            center=np.array([10.0, 10.0, 20.0]),
                             direction=np.array([0.0, 0.0, 1.0]), radius=r, length=length)
     mesh._cache.clear()
     flags = pin_triangles([piece], [joint])["p0-0-0"]

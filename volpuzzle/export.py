@@ -783,15 +783,13 @@ def _printable_problem(piece, problem):
 def pin_triangles(pieces, joints):
     """{piece id: (m,) uint8, 1 for triangles on one of its pins}: those outside the piece's face, within the pin's
     outer radius (a snap pin swells) and length. For the second (pin) material of 3MF files."""
-    from .joint import outer_radius
+    from .joint import cell_joints, outer_radius
 
     out = {}
-    pins_of = {}  # pin cell -> its pins: one pass, not one over every joint per piece (1 s at 1024 pieces)
-    for j in joints:
-        if j.style == "pin":
-            pins_of.setdefault(tuple(j.pin_cell), []).append(j)
+    touching = cell_joints(joints)  # a piece looks at its own cell's joints, not every joint (0.2 s at 1024 pieces)
     for p in pieces:
-        mine = pins_of.get(tuple(p.cell))
+        cell = tuple(p.cell)
+        mine = [j for j in touching.get(cell, ()) if j.style == "pin" and tuple(j.pin_cell) == cell]
         if not mine:
             continue
         # not mesh.triangles_center: that would keep (m, 3, 3) triangles cached on every piece to the end

@@ -579,12 +579,9 @@ class _Sides:
         (all six of a cell evaluated at once, on first use; a face the cell beside it evaluated is taken from it)."""
         idx = tuple(idx)
         if idx not in self._faces:
-            lo, hi = self.tiling.cells[idx].box
-            keys = {}
-            for ax, e in _SIX_FACES:
-                b, c = _cyclic(ax)
-                keys[(ax, e)] = (ax, float(hi[ax] if e else lo[ax]), float(lo[b]), float(hi[b]), float(lo[c]),
-                                 float(hi[c]))
+            cell = self.tiling.cells[idx]
+            lo, hi = cell.box
+            keys = {(ax, e): cell.face_key(ax, e) for ax, e in _SIX_FACES}
             missing = [f for f in _SIX_FACES if keys[f] not in self._shared]
             if missing:
                 m = self.count * self.count

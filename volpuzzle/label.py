@@ -456,9 +456,7 @@ def _face_samples(cell, fmap, a, side):
     """The candidate centres of the cell's face along axis a, side +-1: face fractions fb, fc (n,), parameters (n, 3),
     points (n, 3) and Jacobians (n, 3, 3) of F there, and the face's boundary points (m, 3) (_boundary). Read-only;
     the same arrays for the two cells that share the face."""
-    lo, hi = cell.box
-    b, c = _cyclic(a)
-    key = (int(a), float(hi[a] if side > 0 else lo[a]), float(lo[b]), float(hi[b]), float(lo[c]), float(hi[c]))
+    key = cell.face_key(a, side > 0)
     try:
         faces = _FACE_SAMPLES.setdefault(fmap, {})
     except TypeError:  # a map that cannot be weakly referenced is simply not cached

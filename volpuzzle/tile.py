@@ -24,6 +24,13 @@ class Cell:
     def center(self):
         return self.box.mean(axis=0)
 
+    def face_key(self, axis, high):
+        """(axis, the face's parameter along it, its min and max along each other axis): the same for the face two
+        neighbouring cells share, so that what is sampled on it serves both. high: the max face, else the min."""
+        lo, hi = self.box
+        return (int(axis), float(hi[axis] if high else lo[axis]),
+                *(float(x) for a in range(3) if a != axis for x in (lo[a], hi[a])))
+
 
 @dataclass(frozen=True, eq=False)
 class Face:

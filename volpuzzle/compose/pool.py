@@ -41,7 +41,7 @@ class BuildJob:
 
     def joints_of(self, index):
         """The joints of cell `index` (pin or hole side), in list order: a piece looks at its own few, not every
-        joint of the puzzle (2 ms a piece at 1024 pieces)."""
+        joint of the puzzle (about 1 ms a piece at 1024 pieces)."""
         return self._joints_by_cell.get(tuple(index), [])
 
 
