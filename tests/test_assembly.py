@@ -279,6 +279,54 @@ def test_parts_of_a_piece_cover_it_along_every_direction():
         assert len(ext) > 1 and np.all(((ext[:, 1] - ext[:, 0]) < 0.8 * np.ptp(vproj, axis=0)).any(axis=1))
 
 
+def _meeting_intervals(em, ef, s):
+    """Per pair of parts, the open interval of offsets (lo, hi) over which they overlap in projection along every
+    direction: parts_meet written as array code over every pair and direction, with no early exits."""
+    a = ef[None, :, 0, :] - em[:, None, 1, :]
+    b = ef[None, :, 1, :] - em[:, None, 0, :]
+    along = np.abs(s) > 1e-12
+    safe = np.where(along, s, 1.0)
+    always = (a < 0) & (b > 0)
+    t_lo = np.where(along, np.minimum(a / safe, b / safe), np.where(always, -np.inf, np.inf)).max(axis=2).ravel()
+    t_hi = np.where(along, np.maximum(a / safe, b / safe), np.where(always, np.inf, -np.inf)).min(axis=2).ravel()
+    return t_lo, t_hi
+
+
+def _meets_by_arrays(em, ef, s, ts, near):
+    t_lo, t_hi = _meeting_intervals(em, ef, s)
+    return near & ((t_lo[None, :] < ts[:, None]) & (ts[:, None] < t_hi[None, :])).any(axis=1)
+
+
+def test_the_compiled_meeting_test_answers_as_the_array_code():
+    """Bit for bit, on parts that meet, miss and graze, along travels with directions exactly across them (s = 0)."""
+    from volpuzzle._assembly_kernels import parts_meet
+
+    rng = np.random.default_rng(5)
+    met = missed = 0
+    for case in range(300):
+        k = int(rng.integers(1, 12))
+        em = np.sort(rng.normal(0.0, 3.0, (int(rng.integers(1, 5)), 2, k)), axis=1)
+        ef = np.sort(rng.normal(rng.normal(0.0, 4.0), 3.0, (int(rng.integers(1, 5)), 2, k)), axis=1)
+        s = rng.normal(size=k)
+        s[rng.random(k) < 0.3] = 0.0  # directions across the travel
+        if case % 4 == 0:  # parts touching exactly along a direction across the travel
+            s[0] = 0.0
+            ef[0, 0, 0] = em[0, 1, 0]
+        ts = rng.uniform(-15.0, 15.0, int(rng.integers(1, 30)))
+        if case % 2 == 0:  # offsets exactly at the ends of the pairs' intervals: open intervals hold neither
+            ends = np.concatenate(_meeting_intervals(em, ef, s))
+            ends = ends[np.isfinite(ends)]
+            ts = np.concatenate([ts, rng.choice(ends, min(len(ends), 6))]) if len(ends) else ts
+        ts = np.sort(ts)
+        near = rng.random(len(ts)) < 0.8
+        got = parts_meet(em, ef, s, ts, near)
+        want = _meets_by_arrays(em, ef, s, ts, near)
+        assert np.array_equal(got, want), case
+        met += int(got.sum())
+        missed += int((near & ~got).sum())
+    assert met > 100 and missed > 100  # both answers were asked for often
+
+
 def test_the_sweep_skips_only_samples_that_cannot_collide():
     """Every sample the broad phase rules out is measured anyway: none overlaps beyond the limit, also along
     directions that drive the blocks into each other, and the sweep reports the earliest collision."""

@@ -648,6 +648,7 @@ class _Scene:
         self.apart = dict(apart or {})
         self.ids = sorted(pieces)
         self.man, self.verts, self.faces, self.box, self.vol, self._meshes = {}, {}, {}, {}, {}, {}
+        self._extents = {}
         for pid in self.ids:
             mesh = pieces[pid]
             mesh = getattr(mesh, "mesh", mesh)
@@ -660,37 +661,26 @@ class _Scene:
         self.booleans = 0
 
     def extents(self, pid):
-        return piece_extents(self._meshes[pid])
+        """piece_extents of a piece, kept by the scene: the sweep asks it of each pair it tests (~18k times at 1024
+        pieces), and each look-up through geometry.memo hashes the mesh."""
+        ext = self._extents.get(pid)
+        if ext is None:
+            ext = self._extents[pid] = piece_extents(self._meshes[pid])
+        return ext
 
     def _may_meet(self, pm_id, pf_id, ts, d, lim):
         """Bool per offset in ts: whether moving pm_id by t * d might make it overlap pf_id by more than lim.
         False is a proof: the boxes share at most lim, or every part of the one lies apart from every part of the
-        other along one of _DIRS."""
+        other along one of _DIRS (_assembly_kernels.parts_meet)."""
+        from ._assembly_kernels import parts_meet
+
         blo = self.box[pm_id][0] + ts[:, None] * d
         bhi = self.box[pm_id][1] + ts[:, None] * d
         common = np.clip(np.minimum(bhi, self.box[pf_id][1]) - np.maximum(blo, self.box[pf_id][0]), 0.0, None)
         out = np.prod(common, axis=1) > lim
         if not out.any():
             return out
-        lo, hi = self._meeting_times(pm_id, pf_id, d)
-        return out & ((lo[None, :] < ts[:, None]) & (ts[:, None] < hi[None, :])).any(axis=1)
-
-    def _meeting_times(self, pm_id, pf_id, d):
-        """Per pair of parts (moving part, fixed part): the open interval of offsets t at which they are apart
-        along none of _DIRS, as (lo (m,), hi (m,)). Along direction e the parts, the moving one shifted by t * d,
-        overlap in projection only while fixed least - moving greatest < t (d.e) < fixed greatest - moving least."""
-        em, ef = self.extents(pm_id), self.extents(pf_id)
-        s = _DIRS @ d
-        a = ef[None, :, 0, :] - em[:, None, 1, :]  # (moving part, fixed part, direction)
-        b = ef[None, :, 1, :] - em[:, None, 0, :]
-        along = np.abs(s) > 1e-12
-        safe = np.where(along, s, 1.0)
-        sa, sb = a / safe, b / safe
-        # across d a direction separates at every offset or at none
-        always = (a < 0) & (b > 0)
-        t_lo = np.where(along, np.minimum(sa, sb), np.where(always, -np.inf, np.inf))
-        t_hi = np.where(along, np.maximum(sa, sb), np.where(always, np.inf, -np.inf))
-        return t_lo.max(axis=2).ravel(), t_hi.min(axis=2).ravel()
+        return parts_meet(self.extents(pm_id), self.extents(pf_id), _DIRS @ d, ts, out)
 
     def _near_pairs(self, moving, fixed, ts, d, lim):
         """(a, b) index pairs into moving and fixed, in row order, whose boxes may share more than lim (m, f) at

@@ -1,8 +1,8 @@
 """Compile the later stages' kernels ahead, in a second process, when numba's cache does not hold them yet.
 
 numba compiles a kernel at its first call and keeps it in its on-disk cache (`cache=True`). A first build on a new
-machine therefore compiles every kernel in turn on the way, ~3 s of it for the kernels the joint, label and preview
-stages first call several seconds in. When their cache files are missing, build() starts this module as a child
+machine therefore compiles every kernel in turn on the way, ~3 s of it for the kernels the joint, label, assembly and
+preview stages first call several seconds in. When their cache files are missing, build() starts this module as a child
 process: it compiles those kernels from the signatures declared below and writes them to the same cache, on the other
 core, while the build loads, verifies and composes; each stage then loads its kernel from the cache instead of
 compiling it. A child that is late or fails changes nothing but time: the stage compiles the kernel itself, as it
@@ -28,6 +28,8 @@ KERNELS = (
      "(float64[::1], float64[:, ::1], float64, int64[:, ::1], float64[:, ::1], float64[::1], float64[::1], "
      "float64[::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64[::1], "
      "float64)"),
+    ("volpuzzle._assembly_kernels", "parts_meet",
+     "(float64[:, :, ::1], float64[:, :, ::1], float64[::1], float64[::1], boolean[::1])"),
     ("volpuzzle.preview", "_scan",
      "(float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1], float64[:, ::1], boolean[::1], float64, "
      "float64, float64, int64, int64, float64, float64, int64, int64[::1])"),
