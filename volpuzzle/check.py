@@ -280,14 +280,20 @@ def _overlaps(shared, pairs):
 
     refs, exact, budget = shared
     out = []
+    known = {}  # k -> (solid, extents): a chunk's pairs share their pieces, and each memo look-up hashes the mesh
+
+    def of(k):
+        if k not in known:
+            known[k] = (piece_solid(refs[k][0].mesh, refs[k][1]), piece_extents(refs[k][0].mesh))
+        return known[k]
+
     for a, b in pairs:
-        sa, sb = (piece_solid(refs[k][0].mesh, refs[k][1]) for k in (a, b))
+        (sa, ea), (sb, eb) = of(a), of(b)
         tol = _tolerance(sa, sb)
         shift, area = (0.0, 0.0) if exact else _shift_of(sb, budget, tol)
         # Solids whose parts lie apart share nothing, which is what the Boolean finds of them (~half the pairs of a
         # build: neighbours stand a face clearance apart) at a fraction of its cost
-        if parts_apart(piece_extents(refs[a][0].mesh), piece_extents(refs[b][0].mesh), shift * _SHIFT_DIR,
-                       _APART_MARGIN + 10.0 * tol):
+        if parts_apart(ea, eb, shift * _SHIFT_DIR, _APART_MARGIN + 10.0 * tol):
             out.append((0.0, shift * area))
         elif exact:
             out.append((overlap_volume(sa, sb), 0.0))
