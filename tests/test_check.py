@@ -382,3 +382,51 @@ def test_a_pieces_joints_tested_together_still_name_the_one_that_fails():
     assert len(failures) == 1 and "does not fit its hole in b" in failures[0]
     alone = check_joints({"a": mesh(below), "b": mesh(above - holes[0])}, joints[1:])
     assert failures == alone  # the same volume as when that joint is tested by itself
+
+
+def test_a_test_cylinder_no_triangle_reaches_lies_wholly_inside_or_outside():
+    # cylinder_side against the engine: a cylinder it places inside is wholly in the solid, one it places outside
+    # shares nothing with it, and one that the surface crosses (by any share) is never placed
+    import manifold3d as m3
+
+    from volpuzzle._check_kernels import cylinder_side
+    from volpuzzle.geometry import cylinder
+    from volpuzzle.grid import frame_from_direction
+
+    solid = (m3.Manifold.cube([20, 16, 12], True) - m3.Manifold.sphere(7.0, 40).translate([10, 8, 6])
+             + m3.Manifold.cylinder(10, 3, 3, 24).translate([-4, 0, 6])).rotate([17, -29, 41])
+    out = solid.to_mesh()
+    vertices = np.ascontiguousarray(out.vert_properties[:, :3], dtype=np.float64)
+    faces = np.ascontiguousarray(out.tri_verts, dtype=np.int64)
+    rng = np.random.default_rng(3)
+    seen = {1: 0, -1: 0, 0: 0}
+    for _ in range(300):
+        center = rng.uniform(-9.0, 9.0, 3)
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        radius, start = rng.uniform(0.3, 2.5), rng.uniform(-2.0, 1.0)
+        stop = start + rng.uniform(0.5, 6.0)
+        side = cylinder_side(vertices, faces, center, *frame_from_direction(d), radius, start, stop, 1e-4)
+        cyl = cylinder(center, d, radius, start, stop, "test")
+        shared = (cyl ^ solid).volume()
+        if side == 1:
+            assert shared == pytest.approx(cyl.volume(), rel=1e-9)
+        elif side == -1:
+            assert shared == 0.0
+        seen[side] += 1
+    assert min(seen.values()) > 30, seen  # every answer was given often
+
+
+def test_a_ray_through_an_edge_gives_up():
+    # a box's faces split along their diagonals: the axis of a cylinder through the box's centre along z meets the
+    # diagonal edges of the top and bottom faces, where the count of crossings cannot be trusted
+    from volpuzzle._check_kernels import cylinder_side
+    from volpuzzle.grid import frame_from_direction
+
+    box = trimesh.creation.box([10, 10, 10])
+    v, f = np.ascontiguousarray(box.vertices, dtype=np.float64), np.ascontiguousarray(box.faces, dtype=np.int64)
+    straight = frame_from_direction(np.array([0.0, 0.0, 1.0]))
+    assert cylinder_side(v, f, np.zeros(3), *straight, 1.0, -1.0, 1.0, 1e-4) == 0
+    aslant = np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0])
+    assert cylinder_side(v, f, np.array([0.3, -0.2, 0.1]), *frame_from_direction(aslant), 1.0, -1.0, 1.0, 1e-4) == 1
+    assert cylinder_side(v, f, np.array([9.0, 0.0, 0.0]), *frame_from_direction(aslant), 1.0, -1.0, 1.0, 1e-4) == -1

@@ -119,3 +119,50 @@ def test_not_a_build(tmp_path):
     with pytest.raises(VolpuzzleError, match="no report.json"):
         check_directory(tmp_path)
     fails(tmp_path, "no report.json")
+
+
+def _pieces_and_joints(directory):
+    report = json.loads((directory / "report.json").read_text())
+    meshes = {p["id"]: trimesh.load(directory / p["file"], process=False) for p in report["pieces"]}
+    for mesh in meshes.values():
+        mesh.merge_vertices()
+    return meshes, report["joints"]
+
+
+def test_joint_tests_the_surface_keeps_clear_of_need_no_engine(built, monkeypatch):
+    # the pins of a real build sit in their holes with room all round: each test passes on the count of one ray, and
+    # the engine measures nothing; with every test left to the engine the answer is the same
+    from volpuzzle import check as C
+
+    meshes, joints = _pieces_and_joints(built)
+    measured = []
+    real = C._measured
+    monkeypatch.setattr(C, "_measured", lambda *a: measured.append(1) or real(*a))
+    assert C.check_joints(meshes, joints) == [] and not measured
+    monkeypatch.setattr(C, "_left_to_measure", lambda _mesh, tests: tests)
+    assert C.check_joints(meshes, joints) == [] and len(measured) >= len(joints)
+
+
+def test_joints_that_fail_are_measured_by_the_engine_alike(built, monkeypatch):
+    # pins moved 0.6 mm across their axes stick out of their pieces' cores and into the holes' walls: the engine
+    # measures each of those tests, and every sentence (its volume too) is what the engine alone gives
+    from volpuzzle import check as C
+
+    meshes, joints = _pieces_and_joints(built)
+    moved = [dict(j, center_mm=[c + 0.6 * s for c, s in zip(j["center_mm"], (0.6, -0.8, 0.0), strict=True)])
+             for j in joints]
+    with_shortcut = C.check_joints(meshes, moved)
+    monkeypatch.setattr(C, "_left_to_measure", lambda _mesh, tests: tests)
+    assert with_shortcut == C.check_joints(meshes, moved)
+    assert len(with_shortcut) >= len(joints)
+
+
+def test_a_small_folder_is_checked_without_starting_numba(built):
+    # numba takes ~0.5 s to start: `volpuzzle check` of a few pieces measures their joints with the engine alone
+    import subprocess
+    import sys
+
+    code = (f"import sys; from volpuzzle.check import check_directory; "
+            f"print(check_directory({str(built)!r})['passed'], 'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["True", "False"]

@@ -1,13 +1,13 @@
 """Compile the later stages' kernels ahead, in a second process, when numba's cache does not hold them yet.
 
 numba compiles a kernel at its first call and keeps it in its on-disk cache (`cache=True`). A first build on a new
-machine therefore compiles every kernel in turn on the way, ~3 s of it for the kernels the joint, label, assembly and
-preview stages first call several seconds in. When their cache files are missing, build() starts this module as a child
-process: it compiles those kernels from the signatures declared below and writes them to the same cache, on the other
-core, while the build loads, verifies and composes; each stage then loads its kernel from the cache instead of
-compiling it. A child that is late or fails changes nothing but time: the stage compiles the kernel itself, as it
-always did. numba writes its cache files whole (a temporary file, then a rename), so two processes compiling the same
-kernel both leave a good one.
+machine therefore compiles every kernel in turn on the way, ~3 s of it for the kernels the joint, label, check, assembly
+and preview stages first call several seconds in. When their cache files are missing, build() starts this module as a
+child process: it compiles those kernels from the signatures declared below and writes them to the same cache, on the
+other core, while the build loads, verifies and composes; each stage then loads its kernel from the cache instead of
+compiling it. A child that is late or fails changes nothing but time: the stage compiles the kernel itself, as it always
+did. numba writes its cache files whole (a temporary file, then a rename), so two processes compiling the same kernel
+both leave a good one.
 
 The signatures are the argument types the stages pass (C-contiguous arrays, 64-bit scalars); a test checks them
 against what a build really compiles, since a kernel compiled for other types would only be compiled again.
@@ -28,6 +28,9 @@ KERNELS = (
      "(float64[::1], float64[:, ::1], float64, int64[:, ::1], float64[:, ::1], float64[::1], float64[::1], "
      "float64[::1], float64[:, ::1], float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64[::1], "
      "float64)"),
+    ("volpuzzle._check_kernels", "cylinder_side",
+     "(float64[:, ::1], int64[:, ::1], float64[::1], float64[::1], float64[::1], float64[::1], float64, float64, "
+     "float64, float64)"),
     ("volpuzzle._assembly_kernels", "parts_meet",
      "(float64[:, :, ::1], float64[:, :, ::1], float64[::1], float64[::1], boolean[::1])"),
     ("volpuzzle.preview", "_scan",
