@@ -329,6 +329,14 @@ def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
         return original(self, fn, items, **kw)
 
     monkeypatch.setattr(W.Workers, "map_pieces", counted)
+    ahead = []
+    prefetch = W.Workers.prefetch
+
+    def begun(self, fn, *args):
+        ahead.append(getattr(fn, "__name__", type(fn).__name__))
+        return prefetch(self, fn, *args)
+
+    monkeypatch.setattr(W.Workers, "prefetch", begun)
     # the paper's quarter torus, randomized, in 2 x 1 x 2 coarse pieces
     spec = example_spec("quarter-torus", tmp_path, tolerance=0.8, grid=[2, 1, 2])
     files, reports, md = {}, {}, {}
@@ -340,6 +348,8 @@ def test_a_build_is_byte_identical_with_one_and_two_jobs(tmp_path, monkeypatch):
         reports[jobs] = _without_times(json.loads((root / "report.json").read_text()))
         md[jobs] = (root / "report.md").read_text().split("## Timings")[0]
     assert {"compose", "label"} <= set(used)
+    # the step pictures were begun in a worker once the assembly was known, before the export
+    assert "_step_pictures" in ahead and any(f.startswith("steps/") for f in files[1])
     assert files[1] == files[2] and any(f.startswith("pieces/") for f in files[1])
     assert reports[1] == reports[2]
     assert md[1] == md[2]

@@ -622,7 +622,8 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         (tmp / "pieces").mkdir()
         # the pictures: this process draws the first itself once the pieces are written (the preview; the steps
         # drawn here instead cost it more, 1.3 against 1.0 CPU s at 32 pieces), the rest are begun in the workers
-        # meanwhile, and one no worker has begun by then is drawn here too (workers.Prefetch) rather than waited for
+        # meanwhile, and one no worker has begun by then is drawn here too (workers.Prefetch) rather than waited for;
+        # a build begins the steps' pictures before this, once the assembly is known (layout.step_pictures_ahead)
         remote = [rel for rel, w in sorted((extras or {}).items()) if workers is not None and isinstance(w, Remote)]
         ahead = []
         for rel in remote[1:]:

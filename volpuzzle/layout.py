@@ -14,6 +14,7 @@ boxes into transforms.
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import trimesh
@@ -537,8 +538,10 @@ def print_entry(piece, pose, placement):
     return entry
 
 
-def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None):
-    """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer})"""
+def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=None, poses=None, steps=None,
+                       step_pictures=None):
+    """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer}).
+    step_pictures: the steps' pictures as step_pictures_ahead began them, else they are drawn with the rest."""
     from .io.threemf import write_3mf
     from .workers import MeshRef, Remote
 
@@ -570,8 +573,34 @@ def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=
     extras["preview.png"] = Remote(_write_preview, refs, names, np.asarray(colors), pins, texture, on_plate,
                                    tuple(spec.output.plate), spec.name, steps)
     if steps:
-        extras["steps"] = Remote(_write_steps, refs, names, colors, steps)
+        extras["steps"] = (Remote(_write_steps, refs, names, colors, steps) if step_pictures is None
+                           else partial(_save_steps, step_pictures))
     return placements, plates, extras
+
+
+def step_pictures_ahead(workers, pieces, colors, steps):
+    """A worker begins drawing the assembly steps' pictures now (workers.Prefetch of preview.step_pictures), while
+    this process lays out the plates and judges the folder: at 1024 pieces they are ~8 s of the export's work, which
+    waited for them. pieces: final (as the files store them). -> Prefetch, or None without workers or steps."""
+    if workers is None or not steps:
+        return None
+    from .workers import MeshRef
+
+    return workers.prefetch(_step_pictures, [MeshRef(p.mesh) for p in pieces], [p.id for p in pieces],
+                            np.asarray(colors), steps)
+
+
+def _step_pictures(refs, names, colors, steps):
+    from .preview import step_pictures
+
+    return step_pictures([r.mesh for r in refs], names, colors, steps)
+
+
+def _save_steps(pictures, path):
+    """The steps' pictures begun by step_pictures_ahead written into the folder `path`."""
+    from .preview import save_pictures
+
+    save_pictures(path, pictures.result())
 
 
 def _write_preview(path, refs, names, colors, pins, texture, on_plate, plate, title, steps):
@@ -600,7 +629,7 @@ def _write_preview(path, refs, names, colors, pins, texture, on_plate, plate, ti
 
 
 def _write_steps(path, refs, names, colors, steps):
-    """One picture per assembly step into the folder `path` (preview.render_steps)."""
-    from .preview import render_steps
+    """One picture per assembly step into the folder `path` (preview.step_pictures)."""
+    from .preview import save_pictures
 
-    render_steps(path, [r.mesh for r in refs], names, colors, steps)
+    save_pictures(path, _step_pictures(refs, names, colors, steps))

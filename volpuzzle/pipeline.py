@@ -172,7 +172,7 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     from .export import piece_colors, pin_triangles, write_build
     from .geometry import forget
     from .joint import dowel_parts, require_pieces_joined
-    from .layout import check_plate, lay_dowels_flat, plates_and_preview
+    from .layout import check_plate, lay_dowels_flat, plates_and_preview, step_pictures_ahead
     from .report import build_report, fit, require_printable
     from .texture import build_texture
 
@@ -191,13 +191,14 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
                                    tiling=s.tiling, fmap=s.fmap, workers=workers,
                                    apart=pairs_apart(s.face_gaps, meshes))
     colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
+    pictures = step_pictures_ahead(workers, s.pieces, colors, assembly.get("steps"))
     texture, texture_report = None, None
     if spec.texture is not None:
         with timer("texture", progress):
             texture, texture_report = build_texture(spec, s.model.volume, s.pieces, s.tolerance)
     with timer("layout", progress):
         placements, plates, extras = plates_and_preview(spec, s.pieces, dowels, s.joints, colors, pins, texture,
-                                                        {**s.poses, **dowel_poses}, assembly.get("steps"))
+                                                        {**s.poses, **dowel_poses}, assembly.get("steps"), pictures)
     report = build_report(spec, s, assembly, placements, plates, texture_report, timer.timings)
     with timer("check", progress):
         # what `volpuzzle check` will judge of the folder (bed contact, the gap between facing cut faces, pin sizes,

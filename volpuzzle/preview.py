@@ -358,17 +358,31 @@ _STEP_TRIANGLES = 200_000  # below this in all, step pictures draw the pieces as
 
 
 def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
-    """One small PNG per assembly step, directory/step-NN.png: the pieces placed so far in light grey, the block
-    added in this step in its colours, drawn back against its direction with an arrow to where it goes. Every
-    picture has one frame, on the whole puzzle and each block drawn back, so the steps line up. meshes: Trimesh in
-    mm; names: their piece ids; colors (n, 3) uint8; steps: report.json assembly steps. -> list of file names, one
-    per step."""
-    from pathlib import Path
+    """step_pictures written into directory (made if need be) -> list of file names, one per step."""
+    return save_pictures(directory, step_pictures(meshes, names, colors, steps, size))
 
-    from PIL import Image, ImageDraw
+
+def save_pictures(directory, pictures):
+    """Files [(name, bytes)] written into directory (made if need be) -> their names."""
+    from pathlib import Path
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    for name, data in pictures:
+        (directory / name).write_bytes(data)
+    return [name for name, _ in pictures]
+
+
+def step_pictures(meshes, names, colors, steps, size=STEP_SIZE):
+    """One small PNG per assembly step, step-NN.png: the pieces placed so far in light grey, the block added in this
+    step in its colours, drawn back against its direction with an arrow to where it goes. Every picture has one
+    frame, on the whole puzzle and each block drawn back, so the steps line up. meshes: Trimesh in mm; names: their
+    piece ids; colors (n, 3) uint8; steps: report.json assembly steps. -> [(file name, PNG bytes)], one per step
+    (plain data: a worker may draw them while the build goes on)."""
+    import io
+
+    from PIL import Image, ImageDraw
+
     where = {n: i for i, n in enumerate(names)}
     cap = _face_cap(meshes, _STEP_TRIANGLES, _STEP_FACES)
     parts = [_simplified(m, cap) for m in meshes]
@@ -425,7 +439,7 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
     def to_px(p):  # a point's pixel in the frame, as _scan places the corners
         return frame[0] + (p @ right) * scale, frame[1] - (p @ up) * scale
 
-    files = []
+    files = []  # (name, PNG bytes)
     for n, (moving, d, back, back_screen) in enumerate(moves):
         if n in last_use:
             saved[n] = placed.copy()
@@ -453,9 +467,9 @@ def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
             a, b = np.array(to_px(centre + back)), np.array(to_px(centre + 0.25 * back))
             _arrow(draw, a, b, width=3 * k)
         _text(draw, w * k / 2, 4 * k, f"step {n + 1}", 14 * k)
-        name = f"step-{n + 1:02d}.png"
-        pil.reduce(k).save(directory / name, format="PNG", compress_level=1)
-        files.append(name)
+        data = io.BytesIO()
+        pil.reduce(k).save(data, format="PNG", compress_level=1)
+        files.append((f"step-{n + 1:02d}.png", data.getvalue()))
         buffer.draw(placed, show, none)
         in_place[moving] = True
     return files
