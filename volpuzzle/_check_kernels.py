@@ -23,8 +23,8 @@ def cylinder_side(vertices, faces, center, e1, e2, axis, radius, start, stop, ma
     polygon (convex, up to 5 corners) keeps clear when the axis lies more than radius + margin from it. A cylinder
     that no triangle reaches is connected and untouched, so one point tells its side: the ray from its axis point at
     the middle of the slab along the axis crosses the surface a net once when inside (the triangles seen around
-    that point, signed by their winding). Each vertex is seen through the same products wherever it appears, so two
-    triangles sharing an edge judge it alike; a ray through an edge or a corner (an exact 0) gives up."""
+    that point, signed by their winding, _around_axis); a ray that passes within rounding of an edge or a corner
+    gives up."""
     reach = radius + margin
     lo, hi = start - margin, stop + margin
     mid = 0.5 * (start + stop)
@@ -71,7 +71,9 @@ def cylinder_side(vertices, faces, center, e1, e2, axis, radius, start, stop, ma
 @njit(cache=True, nogil=True)
 def _around_axis(tri):
     """How the triangle tri[:3] (along the axis, across e1, across e2) winds about the axis seen along it: 1 or -1
-    when the axis passes strictly inside it, 0 when it passes outside, 2 when it meets an edge or a corner."""
+    when the axis passes strictly inside it, 0 when it passes outside, 2 when it comes within rounding of an edge or
+    a corner. Decided exactly, so that the count of crossings is: a triangle whose box the axis misses is outside,
+    and an edge's side of the axis is trusted only when its cross product is far above its rounding."""
     if ((tri[0, 1] > 0.0 and tri[1, 1] > 0.0 and tri[2, 1] > 0.0)
             or (tri[0, 1] < 0.0 and tri[1, 1] < 0.0 and tri[2, 1] < 0.0)
             or (tri[0, 2] > 0.0 and tri[1, 2] > 0.0 and tri[2, 2] > 0.0)
@@ -81,12 +83,12 @@ def _around_axis(tri):
     for i in range(3):
         j = (i + 1) % 3
         side = tri[i, 1] * tri[j, 2] - tri[i, 2] * tri[j, 1]  # the axis's side of edge i -> j
+        if abs(side) <= 1e-12 * (abs(tri[i, 1]) + abs(tri[i, 2])) * (abs(tri[j, 1]) + abs(tri[j, 2])):
+            return 2
         if side > 0.0:
             positive += 1
-        elif side < 0.0:
-            negative += 1
         else:
-            return 2
+            negative += 1
     if positive == 3:
         return 1
     return -1 if negative == 3 else 0
