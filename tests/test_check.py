@@ -1,5 +1,7 @@
 """The build's self-checks: closed pieces, volume sum, no overlaps."""
 
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -433,3 +435,16 @@ def test_a_ray_through_an_edge_gives_up():
     aslant = np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0])
     assert cylinder_side(v, f, np.array([0.3, -0.2, 0.1]), *frame_from_direction(aslant), 1.0, -1.0, 1.0, 1e-4) == 1
     assert cylinder_side(v, f, np.array([9.0, 0.0, 0.0]), *frame_from_direction(aslant), 1.0, -1.0, 1.0, 1e-4) == -1
+
+
+def test_the_joint_check_keeps_to_the_engine_until_its_kernel_is_ready(monkeypatch):
+    # compiling the kernel (~1.7 s) would cost a first build of a few pieces on a new machine more than it saves
+    from volpuzzle import check as C
+    from volpuzzle import precompile
+
+    monkeypatch.setattr(precompile, "ready", lambda _dispatcher: False)
+    assert not C._shortcut_ready()
+    monkeypatch.setattr(precompile, "ready", lambda _dispatcher: True)
+    assert C._shortcut_ready()
+    monkeypatch.delitem(sys.modules, "numba")  # `volpuzzle check` of a few pieces does not start numba for it
+    assert not C._shortcut_ready()

@@ -103,7 +103,8 @@ def _clip(src, dst, n, bound, sense):
         si = sense * (src[i, 0] - bound)
         sj = sense * (src[j, 0] - bound)
         if si >= 0.0:
-            dst[m] = src[i]
+            for k in range(3):  # element by element: a row assignment costs numba seconds to compile
+                dst[m, k] = src[i, k]
             m += 1
         if (si >= 0.0) != (sj >= 0.0):
             w = si / (si - sj)

@@ -572,8 +572,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
                 tests.setdefault(pid, []).append((k, order, kind, cylinders))
     items = list(tests.items())
     chunks = [items[c:c + _PIECES_PER_TASK] for c in range(0, len(items), _PIECES_PER_TASK)]
-    # the compiled shortcut once numba is loaded (it always is in a build), or when it saves more than its start-up
-    shortcut = "numba" in sys.modules or len(items) >= _SHORTCUT_MIN_PIECES
+    shortcut = len(items) >= _SHORTCUT_MIN_PIECES or _shortcut_ready()
     found = map_pieces(workers, _joint_measures, chunks,
                        shared=({pid: MeshRef(meshes[pid]) for pid in tests}, share, shortcut), what="check")
     failed = sorted(f for chunk in found for f in chunk)
@@ -581,8 +580,8 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
 
 
 _PIECES_PER_TASK = 8  # pieces per worker task: ~25 ms of Booleans and test cylinders
-# pieces from which `volpuzzle check` starts numba for _left_to_measure: ~0.5 s to start, ~3 ms of Booleans saved a
-# piece
+# pieces from which _left_to_measure pays for starting numba (~0.5 s) and compiling its kernel on a new machine
+# (~1.7 s), at ~3 ms of Booleans saved a piece
 _SHORTCUT_MIN_PIECES = 256
 _CLEAR_MARGIN = 1e-4  # mm a surface keeps from a test cylinder that passes without the engine (_left_to_measure)
 
@@ -652,6 +651,17 @@ def _joint_measures(shared, items):
                 if volume > share * shape.volume():
                     out.append((k, order, volume))
     return out
+
+
+def _shortcut_ready() -> bool:
+    """Whether _left_to_measure costs nothing to start: numba loaded (as in a build) and its kernel compiled or in
+    numba's cache. A first build of a few pieces on a new machine measures their joints with the engine instead."""
+    if "numba" not in sys.modules:
+        return False
+    from . import precompile
+    from ._check_kernels import cylinder_side
+
+    return precompile.ready(cylinder_side)
 
 
 def _left_to_measure(mesh, tests):

@@ -54,9 +54,22 @@ def missing() -> bool:
     """Whether numba's cache lacks the index of any kernel in KERNELS (a new machine, or a new cache folder). An index
     that is there but stale (its source edited since) counts as present: the stage then compiles, as it always did."""
     try:
-        return any(not os.path.exists(kernel(m, n)._cache._cache_file._index_path) for m, n, _ in KERNELS)
+        return any(not _indexed(kernel(m, n)) for m, n, _ in KERNELS)
     except Exception:  # noqa: BLE001 - numba's cache internals differ between versions: then never start a child
         return False
+
+
+def ready(dispatcher) -> bool:
+    """Whether calling a kernel costs no compiling: compiled in this process already, or in numba's cache (its index
+    there; a stale one counts too, as in missing). For a stage that may do without it on a new machine."""
+    try:
+        return bool(dispatcher.signatures) or _indexed(dispatcher)
+    except Exception:  # noqa: BLE001 - numba's cache internals differ between versions: then say it is not
+        return False
+
+
+def _indexed(dispatcher) -> bool:
+    return os.path.exists(dispatcher._cache._cache_file._index_path)
 
 
 def start(jobs: int = 2):
