@@ -407,3 +407,13 @@ def test_joint_checks_in_the_workers_are_the_serial_ones(pool, monkeypatch, per_
     for main_takes in (False, True):
         monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", main_takes)
         assert check.check_joints(meshes, joints, workers=pool) == serial
+
+
+def test_items_go_in_runs_of_neighbours_about_a_fixed_number_of_tasks():
+    # a few items keep to runs of the least size; many are cut into about _TASKS runs, so that pairs sharing a piece
+    # mostly go to one process; the runs keep every item once, in order
+    few, many = list(range(50)), list(range(10_000))
+    assert [len(r) for r in W.in_tasks(few, 8)] == [8] * 6 + [2]
+    runs = W.in_tasks(many, 8)
+    assert len(runs) <= W._TASKS and min(len(r) for r in runs[:-1]) > 8
+    assert [x for r in runs for x in r] == many and W.in_tasks([], 8) == []

@@ -239,10 +239,10 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
                         failures.append(f"{solids[k]}; its overlaps were not measured")
             if not (isinstance(solids[a], str) or isinstance(solids[b], str)):
                 measured.append((a, b))
-        from .workers import MeshRef, map_pieces
+        from .workers import MeshRef, in_tasks, map_pieces
 
         shared = ({k: (MeshRef(meshes[good[k]]), ids[good[k]]) for k in solids}, exact_overlaps, 0.01 * limit)
-        chunks = [measured[c:c + _PAIRS_PER_TASK] for c in range(0, len(measured), _PAIRS_PER_TASK)]
+        chunks = in_tasks(measured, _PAIRS_PER_TASK)
         found = map_pieces(workers, _overlaps, chunks, shared=shared, what="check")
         for (a, b), (v, bound) in zip(measured, [r for chunk in found for r in chunk], strict=True):
             max_bound = max(max_bound, bound)
@@ -272,7 +272,7 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
     }
 
 
-_PAIRS_PER_TASK = 12  # overlap pairs per worker task: ~50 ms, small enough that the two sides end together
+_PAIRS_PER_TASK = 12  # overlap pairs per worker task at least (workers.in_tasks): ~50 ms
 
 
 def _overlaps(shared, pairs):
@@ -560,7 +560,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
     (both within `share` of the tested volume, which absorbs the polygonal circles). A test whose cylinders no
     triangle comes near is settled by one ray (_left_to_measure); the engine measures the rest. workers: a
     volpuzzle.workers.Workers that tests some of the pieces (the same sentences, in joint order)."""
-    from .workers import MeshRef, map_pieces
+    from .workers import MeshRef, in_tasks, map_pieces
 
     tested = [(k, j) for k, j in enumerate(joints) if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
     used = {j[key] for _, j in tested for key in ("pin_piece", "hole_piece")}
@@ -571,7 +571,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
             for order, (pid, kind, cylinders) in enumerate(_joint_tests(j)):
                 tests.setdefault(pid, []).append((k, order, kind, cylinders))
     items = list(tests.items())
-    chunks = [items[c:c + _PIECES_PER_TASK] for c in range(0, len(items), _PIECES_PER_TASK)]
+    chunks = in_tasks(items, _PIECES_PER_TASK)
     shortcut = len(items) >= _SHORTCUT_MIN_PIECES or _shortcut_ready()
     found = map_pieces(workers, _joint_measures, chunks,
                        shared=({pid: MeshRef(meshes[pid]) for pid in tests}, share, shortcut), what="check")
@@ -579,7 +579,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
     return [_joint_sentence(joints[k], order, volume) for k, order, volume in failed]
 
 
-_PIECES_PER_TASK = 8  # pieces per worker task: ~25 ms of Booleans and test cylinders
+_PIECES_PER_TASK = 8  # pieces per worker task at least (workers.in_tasks)
 # pieces from which _left_to_measure pays for starting numba (~0.5 s) and compiling its kernel on a new machine
 # (~1.7 s), at ~3 ms of Booleans saved a piece
 _SHORTCUT_MIN_PIECES = 256
@@ -1041,7 +1041,7 @@ def _face_gaps(meshes, face_clearance, shared=None, workers=None):
     the whole surfaces, up to the first pair that touches (0): after it, the closest vertices (an upper bound), since
     what is used of the smallest gaps is their least and the first pair with it, which no later pair can change.
     workers: a volpuzzle.workers.Workers that measures some of the pairs (the same figures, in the same order)."""
-    from .workers import MeshRef, map_pieces
+    from .workers import MeshRef, in_tasks, map_pieces
 
     ids = sorted(meshes)
     reach = 3.0 * face_clearance
@@ -1055,7 +1055,7 @@ def _face_gaps(meshes, face_clearance, shared=None, workers=None):
         pairs.extend((ids[i], ids[k]) for k in near.tolist()
                      if shared is None or frozenset((ids[i], ids[k])) in shared)
     # in pair order (by piece id, so that a chunk's pieces are mostly the same few): each chunk's pieces travel once
-    chunks = [pairs[c:c + _GAP_PAIRS_PER_TASK] for c in range(0, len(pairs), _GAP_PAIRS_PER_TASK)]
+    chunks = in_tasks(pairs, _GAP_PAIRS_PER_TASK)
     used = {pid for pair in pairs for pid in pair}
     found = map_pieces(workers, _gaps_of, chunks, shared=({pid: MeshRef(meshes[pid]) for pid in used}, reach),
                        what="check")
@@ -1072,7 +1072,7 @@ def _face_gaps(meshes, face_clearance, shared=None, workers=None):
     return out
 
 
-_GAP_PAIRS_PER_TASK = 8  # face-gap pairs per worker task: ~150 ms of engine gaps
+_GAP_PAIRS_PER_TASK = 8  # face-gap pairs per worker task at least (workers.in_tasks): ~150 ms of engine gaps
 _GAP_SEARCH_MARGIN = 1e-6  # mm the engine searches past the closest vertices: well above their rounding
 
 

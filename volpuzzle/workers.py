@@ -354,6 +354,18 @@ class Prefetch:
         return self._fn(*self._args)
 
 
+_TASKS = 96  # tasks a stage's items are cut into (in_tasks), at most: ~30 per process of a 2-core build
+
+
+def in_tasks(items: Sequence, least: int) -> list:
+    """items cut into runs of consecutive items, each of at least `least` and about _TASKS in all: for a stage whose
+    items share pieces with their neighbours in the list (pairs of pieces, in id order), so that a piece mostly travels
+    to one process, which builds its solid once. At 1024 pieces, the face-gap and overlap checks took 1.9-3.6 s less
+    in runs of 32 and 48 pairs than in runs of 8 and 12."""
+    size = max(int(least), -(-len(items) // _TASKS), 1)
+    return [items[c:c + size] for c in range(0, len(items), size)]
+
+
 def map_pieces(workers: Workers | None, fn: Callable, items: Sequence, shared=None, what: str = "a stage",
                done: Callable | None = None) -> list:
     """workers.map_pieces(fn, items, shared, what, done), or [fn(shared, item) for item in items] here when there are
