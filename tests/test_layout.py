@@ -238,14 +238,14 @@ def test_overflowing_parts_fill_few_plates_inside_and_apart():
 
 
 def test_step_pictures_show_the_pieces_in_place_grey_and_the_block_added_in_its_colour(tmp_path):
-    from volpuzzle.preview import render_steps
+    from volpuzzle.preview import save_pictures, step_pictures
 
     a = trimesh.creation.box([10, 10, 10])
     b = trimesh.creation.box([10, 10, 10]).apply_translation([10, 0, 0])
     colors = np.array([[220, 40, 40], [40, 40, 220]], np.uint8)
     steps = [{"kind": "place", "piece": "a", "pieces": ["a"], "direction": None},
              {"kind": "join", "piece": "b", "pieces": ["b"], "direction": [0.0, 0.0, -1.0]}]
-    files = render_steps(tmp_path, [a, b], ["a", "b"], colors, steps)
+    files = save_pictures(tmp_path, step_pictures([a, b], ["a", "b"], colors, steps))
     assert files == ["step-01.png", "step-02.png"]
     first, second = (np.asarray(Image.open(tmp_path / f).convert("RGB")).astype(int) for f in files)
     assert first.shape == (270, 360, 3)
@@ -293,7 +293,7 @@ def test_hull_points_are_trimeshs_hull_vertices():
 def test_step_pictures_move_a_finished_block_whole_and_leave_no_copy_of_it_in_place(tmp_path):
     """A sub-assembly (c and d) joined onto another (a and b) is drawn back in its colours once: not also in place,
     where its pieces were drawn in the steps that assembled it (the pictures reuse those steps' depth buffers)."""
-    from volpuzzle.preview import render_steps
+    from volpuzzle.preview import save_pictures, step_pictures
 
     boxes = [trimesh.creation.box([10, 10, 10]).apply_translation([10 * i, 0, 0]) for i in range(4)]
     colors = np.array([[220, 40, 40], [40, 200, 40], [40, 40, 220], [200, 40, 200]], np.uint8)
@@ -303,7 +303,7 @@ def test_step_pictures_move_a_finished_block_whole_and_leave_no_copy_of_it_in_pl
              {"kind": "place", "piece": "c", "pieces": ["c"], "direction": None},
              {"kind": "join", "piece": "d", "pieces": ["d"], "direction": down},
              {"kind": "join", "piece": None, "pieces": ["c", "d"], "direction": down}]
-    files = render_steps(tmp_path, boxes, ["a", "b", "c", "d"], colors, steps)
+    files = save_pictures(tmp_path, step_pictures(boxes, ["a", "b", "c", "d"], colors, steps))
     pics = [np.asarray(Image.open(tmp_path / f).convert("RGB")).astype(int)[25:] for f in files]
 
     def blue(px):  # c's colour

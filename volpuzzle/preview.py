@@ -357,11 +357,6 @@ _STEP_FACES = 300  # triangles per piece in step pictures of a large puzzle: a s
 _STEP_TRIANGLES = 200_000  # below this in all, step pictures draw the pieces as they are
 
 
-def render_steps(directory, meshes, names, colors, steps, size=STEP_SIZE):
-    """step_pictures written into directory (made if need be) -> list of file names, one per step."""
-    return save_pictures(directory, step_pictures(meshes, names, colors, steps, size))
-
-
 def save_pictures(directory, pictures):
     """Files [(name, bytes)] written into directory (made if need be) -> their names."""
     from pathlib import Path
