@@ -417,3 +417,67 @@ def test_items_go_in_runs_of_neighbours_about_a_fixed_number_of_tasks():
     runs = W.in_tasks(many, 8)
     assert len(runs) <= W._TASKS and min(len(r) for r in runs[:-1]) > 8
     assert [x for r in runs for x in r] == many and W.in_tasks([], 8) == []
+
+
+def _steps_until_stopped(stopped, pause):
+    steps = 0
+    while not stopped():
+        time.sleep(pause)
+        steps += 1
+    return os.getpid(), steps
+
+
+def test_work_on_the_side_runs_until_stopped_and_gives_what_it_did(pool):
+    side = pool.background(_steps_until_stopped, 0.01)
+    deadline = time.monotonic() + 60
+    while not os.path.exists(side._begun) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    pid, steps = side.stop()
+    assert pid != os.getpid() and steps > 0
+
+
+def test_work_on_the_side_not_begun_is_dropped_without_waiting(pool):
+    busy = pool.submit(_sleep, 1.0)  # the one worker is busy: the work waits in its queue
+    side = pool.background(_steps_until_stopped, 0.01)
+    t0 = time.monotonic()
+    assert side.stop() is None
+    assert time.monotonic() - t0 < 0.5  # not kept waiting for the worker
+    assert busy.result() == 1.0
+    assert side._future.result() is None  # the worker got to it after the stop: it did nothing
+
+
+def test_cell_surfaces_made_ahead_are_cell_surfaces_and_build_the_same_pieces(pool, tmp_path, monkeypatch):
+    from volpuzzle.compose import ahead as A
+    from volpuzzle.compose import cell_surface, compose
+    from volpuzzle.pipeline import prepare
+    from volpuzzle.spec import load_spec
+
+    s = prepare(load_spec(example_spec("quarter-torus", tmp_path, tolerance=0.8, grid=[2, 1, 2])))
+    begun = A.begin(pool, s.tiling, s.fmap, 0.8, 0.15)
+    deadline = time.monotonic() + 60
+    while not begun.sampling._future.done() and time.monotonic() < deadline:  # sampled in the worker
+        time.sleep(0.01)
+    sampling = begun.sampling.result()
+    while not os.path.exists(begun.surfaces._begun) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(1.0)  # a few surfaces a second at least
+    begun.stop()
+    made = A._KEPT[begun.token][3]
+    cells = sorted(s.tiling.cells)
+    # the last cells first, each exactly cell_surface's
+    assert made and sorted(made) == [(c, 0.15) for c in cells[len(cells) - len(made):]]
+    for (index, clearance), (v, f) in made.items():
+        v0, f0 = cell_surface(s.tiling.cell(index), sampling, s.fmap, clearance)
+        assert np.array_equal(v, v0) and np.array_equal(f, f0)
+    used = []
+    surface = A.surface
+    monkeypatch.setattr(A, "surface", lambda *args: used.append(surface(*args)) or used[-1])
+    with_ahead = compose(s.tiling, s.fmap, s.joints, 0.8, sampling=sampling, face_clearance=0.15, workers=pool,
+                         ahead=begun.token)
+    assert any(u is not None for u in used)  # this process built pieces on the worker's surfaces
+    assert begun.token not in A._KEPT  # used here, and let go
+    alone = compose(s.tiling, s.fmap, s.joints, 0.8, sampling=sampling, face_clearance=0.15)
+    for p, q in zip(with_ahead, alone, strict=True):
+        assert p.id == q.id and np.array_equal(p.mesh.vertices, q.mesh.vertices)
+        assert np.array_equal(p.mesh.faces, q.mesh.faces)

@@ -20,12 +20,12 @@ from .progress import Progress, Timer, warn
 if TYPE_CHECKING:  # the stage modules load trimesh and the geometry engine: only after the limits pass
     from .assembly import AssemblyPlan
     from .compose import Piece
+    from .compose.ahead import Ahead
     from .joint import Joint
     from .layout import Pose
     from .load import Model
     from .mapping import Map
     from .tile import Tiling
-    from .workers import Prefetch
 
 __all__ = ["Progress", "Stages", "Timer", "build", "prepare", "validate"]
 
@@ -51,13 +51,13 @@ class Stages:
     tolerance: float = 0.0  # mm, the tessellation tolerance finally used (at most output.tolerance)
     face_clearance: float = 0.0  # mm, the gap between mating cut faces actually applied
     mesh_report: dict | None = None  # mesh mode: meshcut.compose_in_mesh's report
-    sampling: Prefetch | None = None  # of compose's Sampling at output.tolerance (begun while joints plan)
+    ahead: Ahead | None = None  # compose's Sampling at output.tolerance and cell surfaces, begun while joints plan
     face_gaps: list = field(default_factory=list)  # check.neighbour_gaps of the pieces, for check_printability
 
 
 def prepare(spec, timer=None, progress=None, workers=None):
     """Every stage up to joints, without meshes: what `validate` runs. -> Stages (pieces not yet built). With
-    workers, a worker samples the cell faces for compose meanwhile (Stages.sampling)."""
+    workers, a worker samples the cell faces for compose meanwhile, then makes cell surfaces (Stages.ahead)."""
     from .limits import check_model_limits, check_spec_limits
 
     check_spec_limits(spec)  # refuse work that cannot fit before any of it is done (or its libraries load)
@@ -92,18 +92,18 @@ def prepare(spec, timer=None, progress=None, workers=None):
             mass = mesh_mass(fmap, model.mesh)  # through the warp too: the cells are cut from the randomized cage
         tiling = tile(vol, spec.grid, spec.splits, spec.periodic, seams, mass)
     check_grid_vs_tolerance(spec, tiling, fmap)
-    sampling = None
+    ahead = None
     if workers is not None and model.mesh is None:  # the sampling needs no joints: a worker begins it now
-        from .compose import sample_parameters
+        from .compose.ahead import begin
 
-        sampling = workers.prefetch(sample_parameters, tiling, fmap, spec.output.tolerance)
+        ahead = begin(workers, tiling, fmap, spec.output.tolerance, _planned_clearance(spec))
     plan, joints, contacts = None, [], None
     if model.mesh is None:  # in mesh mode the joints go on the contacts of the final pieces, known after composing
         with timer("joint", progress):
             layout, plan = place_planned_joints(tiling, fmap, spec.joints)
         joints, contacts = list(layout.joints), list(layout.contacts)
     return Stages(model, tiling, fmap, joints, plan, contacts, model_report(model, model_check, all_seams),
-                  rand_report, sampling=sampling)
+                  rand_report, ahead=ahead)
 
 
 def _model_source(spec):
@@ -215,6 +215,14 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
     return report
 
 
+def _planned_clearance(spec):
+    """The face clearance _face_clearance will apply, as far as the spec tells before the joints are placed: None
+    when it depends on them (pins built in the domain)."""
+    if spec.output.face_clearance > 0 and spec.joints.space == "domain" and spec.joints.style != "none":
+        return None
+    return float(spec.output.face_clearance)
+
+
 def _face_clearance(spec, s):
     """mm of output.face_clearance that can be applied (0 with pins built in the domain, warned)."""
     clearance = spec.output.face_clearance
@@ -250,10 +258,13 @@ def _compose(spec, s, jobs, timer, progress, workers=None):
         for attempt in range(3):
             with timer("compose", progress):
                 # while a worker still samples, this process loads what the later stages need (labels' outlines)
-                ahead = (s.sampling.result(meanwhile=warm_rest) if attempt == 0 and s.sampling is not None
-                         else None)
+                first = s.ahead if attempt == 0 else None
+                if first is not None:
+                    first.stop()  # the worker's surfaces made so far are its to use; it builds pieces now
+                sampled = first.sampling.result(meanwhile=warm_rest) if first is not None else None
                 pieces = compose(s.tiling, s.fmap, s.joints, tolerance, jobs=jobs, progress=progress.piece,
-                                 sampling=ahead, face_clearance=clearance, workers=workers)
+                                 sampling=sampled, face_clearance=clearance, workers=workers,
+                                 ahead=first.token if first is not None else None)
             sampling = pieces.sampling  # the finishing stages return plain lists
             face_gaps = face_clearance_volume(sampling, clearance)
             done = _finish(spec, s, pieces, s.model_report["volume_mm3"] - gaps - face_gaps, clearance, timer,

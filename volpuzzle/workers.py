@@ -283,6 +283,12 @@ class Workers:
         Prefetch.result() gives it, or computes it here when no worker has begun it by then."""
         return Prefetch(self, fn, args)
 
+    def background(self, fn: Callable, *args) -> Background:
+        """fn(stopped, *args) queued for a worker, for work worth doing only while the worker would otherwise idle:
+        stopped() turns True once this process calls Background.stop(), and fn asks it between its steps and
+        returns what it has done."""
+        return Background(self, fn, args)
+
     def _folder(self):
         if self._dir is None:
             self._dir = tempfile.mkdtemp(prefix="volpuzzle-workers-")
@@ -322,6 +328,38 @@ def _claim(path: str) -> bool:
 def _claimed_call(claim, fn, *args):
     """In a worker: (True, fn(*args)), or (False, None) when this process has taken the work back already."""
     return (True, fn(*args)) if _claim(claim) else (False, None)
+
+
+class Background:
+    """Work a worker does while it would idle (Workers.background), until this process stops it."""
+
+    def __init__(self, workers: Workers, fn: Callable, args: tuple):
+        token = next(workers._tokens)
+        self._stop = os.path.join(workers._folder(), f"stop-{token}")
+        self._begun = os.path.join(workers._folder(), f"begun-{token}")
+        try:
+            self._future = workers._executor.submit(_until, self._begun, self._stop, fn, *args)
+        except (RuntimeError, concurrent.futures.process.BrokenProcessPool):
+            self._future = None
+
+    def stop(self):
+        """Tell the work to stop -> what it returns, or None when it had not begun (it never will) or failed. Waits
+        only for a worker that has begun it, which stops at its next step."""
+        _claim(self._stop)
+        if self._future is None or not os.path.exists(self._begun):
+            return None
+        try:
+            return self._future.result()
+        except Exception:  # noqa: BLE001 - work on the side: whatever went wrong, the stage does it itself
+            return None
+
+
+def _until(begun: str, path: str, fn, *args):
+    """In a worker: Background's fn, told to stop once `path` exists (and not begun at all when it does already)."""
+    _claim(begun)
+    if os.path.exists(path):
+        return None
+    return fn(lambda: os.path.exists(path), *args)
 
 
 class Prefetch:

@@ -22,13 +22,13 @@ class Piece:
     triangles: int
 
 
-def build_piece(cell, sampling, fmap, joints, face_clearance=0.0):
+def build_piece(cell, sampling, fmap, joints, face_clearance=0.0, surface=None):
     """One cell -> Piece: its body through F, cut faces set back by face_clearance / 2, pins united and holes
     subtracted (in mm, or in the domain for joints with space 'domain'); checked to be one closed solid with outward
-    normals."""
+    normals. surface: the cell's cell_surface (vertices, faces) when it was made already (compose.ahead)."""
     what = cell.id
     index = tuple(cell.index)
-    verts, faces = cell_surface(cell, sampling, fmap, face_clearance=face_clearance)
+    verts, faces = surface if surface is not None else cell_surface(cell, sampling, fmap, face_clearance=face_clearance)
     body = geometry.manifold_from_mesh(verts, faces, what)
     body_volume = float(body.volume())
     solids = joint_solids(joints, index)

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
+from . import ahead
 from .piece import Piece, build_piece
 
 # Without the build's pool (compose called on its own, as mesh mode and the tests do) a pool is started for compose
@@ -32,6 +33,7 @@ class BuildJob:
     fmap: object
     joints: list
     face_clearance: float
+    ahead: str | None = None  # the token of the surfaces a worker made ahead (compose.ahead), if any
 
     @cached_property
     def _joints_by_cell(self):
@@ -62,7 +64,7 @@ def build_record(job, index):
     """Cell `index` of the job -> _PieceRecord."""
     t0 = time.perf_counter()
     p = build_piece(job.tiling.cell(index), job.sampling, job.fmap, job.joints_of(index),
-                    face_clearance=job.face_clearance)
+                    face_clearance=job.face_clearance, surface=ahead.surface(job.ahead, index, job.face_clearance))
     return _PieceRecord(p.id, p.cell, np.asarray(p.mesh.vertices), np.asarray(p.mesh.faces), p.volume,
                         p.body_volume, time.perf_counter() - t0)
 
