@@ -64,6 +64,35 @@ def test_boolean_with_failed_operand_raises():
         G.boolean(manifold3d.Manifold.cube((1, 1, 1)), bad, "union", "p9")
 
 
+def test_a_batch_boolean_is_the_booleans_one_at_a_time():
+    body = manifold3d.Manifold.cube((4, 4, 4))
+    pins = [manifold3d.Manifold.cylinder(2.0, 0.5).translate((1, 1, 3)),
+            manifold3d.Manifold.cube((1, 1, 1)).translate((3.5, 2, 2))]
+    holes = [manifold3d.Manifold.cylinder(2.0, 0.5).translate((3, 1, -0.5)),
+             manifold3d.Manifold.cube((1, 1, 1)).translate((-0.5, 2.5, 1))]
+    one, batch = body, G.boolean_all(body, pins, "union", "x")
+    for p in pins:
+        one = G.boolean(one, p, "union", "x")
+    assert batch.volume() == pytest.approx(one.volume(), abs=1e-9) and batch.volume() > body.volume()
+    one, batch = body, G.boolean_all(body, holes, "difference", "x")
+    for h in holes:
+        one = G.boolean(one, h, "difference", "x")
+    assert batch.volume() == pytest.approx(one.volume(), abs=1e-9) and batch.volume() < body.volume()
+    assert G.boolean_all(body, [], "union", "x") is body
+    with pytest.raises(GeometryError, match=r"x: unknown batch boolean operation 'intersection' \(expected one of "
+                                            r"\['difference', 'union'\]\)"):
+        G.boolean_all(body, holes, "intersection", "x")
+
+
+def test_a_batch_boolean_names_the_operand_that_failed():
+    bad = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]),
+                                                tri_verts=np.array([[0, 1, 2]], dtype=np.uint64)))
+    good = manifold3d.Manifold.cube((1, 1, 1))
+    with pytest.raises(GeometryError, match=r"p9 \(pins\): the geometry engine failed at union \(operand 3\) "
+                                            r"\(status NotManifold\)"):
+        G.boolean_all(good, [good.translate((2, 0, 0)), bad], "union", "p9 (pins)")
+
+
 def test_check_solid_open_mesh():
     box = _cube_mesh()
     with pytest.raises(GeometryError, match="not closed"):

@@ -152,6 +152,20 @@ def boolean(a, b, op, what):
     return check_status(_OPS[op](a, b), what, op)
 
 
+def boolean_all(first, others, op, what):
+    """first op every solid of others, in one batch Boolean of the engine, for op in 'union' | 'difference' (others
+    not meeting each other; one batch is ~30% cheaper than one Boolean each); checks every operand and the result."""
+    kinds = {"union": manifold3d.OpType.Add, "difference": manifold3d.OpType.Subtract}
+    if op not in kinds:
+        raise GeometryError(f"{what}: unknown batch boolean operation {op!r} (expected one of {sorted(kinds)})")
+    others = list(others)
+    if not others:
+        return check_status(first, what, f"{op} (first operand)")
+    for k, m in enumerate([first, *others]):
+        check_status(m, what, f"{op} (operand {k + 1})")
+    return check_status(manifold3d.Manifold.batch_boolean([first, *others], kinds[op]), what, op)
+
+
 def check_solid(mesh, what):
     """Raise GeometryError unless mesh is watertight, consistently wound, one body and encloses positive volume."""
     if len(mesh.faces) == 0:

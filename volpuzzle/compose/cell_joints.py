@@ -47,11 +47,12 @@ def joint_solids(joints, index):
 
 
 def apply_joints(body, pins, holes, what):
-    """body (Manifold) with the pins united and the holes subtracted."""
-    for k, p in enumerate(pins):
-        body = geometry.boolean(body, p, "union", f"{what} (pin {k + 1})")
-    for k, h in enumerate(holes):
-        body = geometry.boolean(body, h, "difference", f"{what} (hole {k + 1})")
+    """body (Manifold) with the pins united and the holes subtracted: a cell's pins keep a wall between them, and so
+    do its holes, so each kind goes in one batch Boolean (at 1024 pieces 3.6 s of Booleans one at a time, 2.5 s)."""
+    if pins:
+        body = geometry.boolean_all(body, pins, "union", f"{what} (pins)")
+    if holes:
+        body = geometry.boolean_all(body, holes, "difference", f"{what} (holes)")
     return body
 
 
