@@ -533,3 +533,26 @@ def test_face_gaps_by_the_kernel_are_the_engines(monkeypatch, kernel):
     # pieces that touch: 0, and the gaps after it are the closest vertices'
     touching = C._face_gaps({"p0": _slab(0, 10), "p1": _slab(10, 20), "p2": _slab(20.1, 30)}, 0.3)
     assert [g[3] for g in touching] == pytest.approx([0.0, 0.1], abs=1e-12) and touching[0][3] == 0.0
+
+
+def test_surfaces_meet_at_every_shift_where_the_solids_overlap_and_nowhere_apart():
+    # surfaces_meet over many shifts at once, against surface_gap one shift at a time and the engine's overlap
+    import manifold3d as m3
+
+    from volpuzzle._check_kernels import surface_gap, surfaces_meet
+
+    a = (m3.Manifold.cube([6, 5, 4], True) - m3.Manifold.sphere(2.5, 24).translate([3, 2.5, 2])).rotate([11, 23, -7])
+    b = m3.Manifold.cylinder(5, 1.5, 0.8, 20).translate([0, 0, -2.5]).rotate([-31, 5, 60]).translate([3.5, 0, 0])
+    (va, fa), (vb, fb) = _solid_arrays(a), _solid_arrays(b)
+    rng = np.random.default_rng(2)
+    shifts = np.ascontiguousarray(rng.uniform(-3.0, 3.0, (120, 3)))
+    meet = surfaces_meet(va, fa, vb, fb, shifts, 1e-6)
+    seen = {True: 0, False: 0}
+    for shift, met in zip(shifts, meet, strict=True):
+        gap = surface_gap(va, fa, vb, fb, shift, 1.0, 1e-6)
+        assert met == (gap == 0.0)
+        if (a.translate(tuple(shift)) ^ b).volume() > 0.0:
+            assert met
+        seen[bool(met)] += 1
+    assert min(seen.values()) > 20, seen
+    assert not surfaces_meet(va, fa, vb, fb, np.zeros((0, 3)), 1e-6).any()

@@ -167,47 +167,7 @@ def surface_gap(va, fa, vb, fb, shift, search, touch):
     near_b = _inside(tb, gb)
     if near_a.shape[0] == 0 or near_b.shape[0] == 0:
         return search
-    # a grid over the second mesh's near triangles (widened by the search), about one triangle a cell
-    lo = np.empty(3)
-    hi = np.empty(3)
-    size = 0.0
-    for c in range(3):
-        lo[c] = np.inf
-        hi[c] = -np.inf
-    for i in near_b:
-        for c in range(3):
-            lo[c] = min(lo[c], tb[i, c] - search)
-            hi[c] = max(hi[c], tb[i, 3 + c] + search)
-            size += tb[i, 3 + c] - tb[i, c]
-    size = max(size / (3.0 * near_b.shape[0]), search, 1e-9)
-    dims = np.empty(3, np.int64)
-    while True:
-        total = 1
-        for c in range(3):
-            dims[c] = max(1, min(int((hi[c] - lo[c]) / size) + 1, 1 << 20))
-            total *= dims[c]
-        if total <= 8 * near_b.shape[0] + 64:
-            break
-        size *= 1.5
-    start = np.zeros(total + 1, np.int64)
-    for i in near_b:
-        i0, j0, k0, i1, j1, k1 = _cells(tb, i, search, lo, size, dims)
-        for x in range(i0, i1 + 1):
-            for y in range(j0, j1 + 1):
-                for z in range(k0, k1 + 1):
-                    start[(x * dims[1] + y) * dims[2] + z + 1] += 1
-    for c in range(total):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    items = np.empty(start[total], np.int64)
-    for i in near_b:
-        i0, j0, k0, i1, j1, k1 = _cells(tb, i, search, lo, size, dims)
-        for x in range(i0, i1 + 1):
-            for y in range(j0, j1 + 1):
-                for z in range(k0, k1 + 1):
-                    cell = (x * dims[1] + y) * dims[2] + z
-                    items[fill[cell]] = i
-                    fill[cell] += 1
+    lo, size, dims, start, items = _grid(tb, near_b, search)
     # every pair whose boxes come within the search, with a lower bound on its distance: the boxes' gap, or all
     # corners of one triangle beyond the other's plane. Measured exactly in the order of that bound, a pair whose
     # bound is no less than the least distance found so far is passed over: neighbours' cut faces, one
@@ -257,6 +217,140 @@ def surface_gap(va, fa, vb, fb, shift, search, touch):
             if best <= touch:
                 return 0.0
     return best
+
+
+@njit(cache=True, nogil=True)
+def surfaces_meet(va, fa, vb, fb, shifts, touch):
+    """Whether the surface of the first mesh (va (n, 3), fa (m, 3)), moved by each of shifts (k, 3) mm, comes within
+    `touch` of the second's -> (k,) bool: False is a proof that no triangle of the one comes that near any of the
+    other. The second mesh's triangles near the first's swept box are put in a grid once for every shift."""
+    k = shifts.shape[0]
+    meet = np.zeros(k, np.bool_)
+    zero = np.zeros(3)
+    ta = _boxes(va, fa, zero)
+    tb = _boxes(vb, fb, zero)
+    ga = _extent(ta, touch)
+    for c in range(3):  # the first mesh's box swept over every shift
+        lo_s, hi_s = np.inf, -np.inf
+        for j in range(k):
+            lo_s = min(lo_s, shifts[j, c])
+            hi_s = max(hi_s, shifts[j, c])
+        ga[c] += lo_s
+        ga[3 + c] += hi_s
+    near_b = _inside(tb, ga)
+    if near_b.shape[0] == 0:
+        return meet
+    gb = _extent(tb, touch)
+    lo, size, dims, start, items = _grid(tb, near_b, touch)
+    every = np.arange(fa.shape[0])
+    plane_a = _planes(va, fa, every, zero)
+    plane_b = _planes(vb, fb, near_b, zero)
+    seen = np.full(fb.shape[0], -1, np.int64)
+    moved = np.empty((fa.shape[0], 6))
+    p = np.empty((3, 3))
+    q = np.empty((3, 3))
+    stamp = 0
+    for j in range(k):
+        shift = shifts[j]
+        for t in range(fa.shape[0]):
+            for c in range(3):
+                moved[t, c] = ta[t, c] + shift[c]
+                moved[t, 3 + c] = ta[t, 3 + c] + shift[c]
+        for a in range(fa.shape[0]):
+            out = False
+            for c in range(3):
+                if moved[a, c] > gb[3 + c] or moved[a, 3 + c] < gb[c]:
+                    out = True
+            if out:
+                continue
+            stamp += 1
+            _corners(va, fa, a, shift, p)
+            i0, j0, k0, i1, j1, k1 = _cells(moved, a, 0.0, lo, size, dims)
+            for x in range(i0, i1 + 1):
+                for y in range(j0, j1 + 1):
+                    for z in range(k0, k1 + 1):
+                        cell = (x * dims[1] + y) * dims[2] + z
+                        for r in range(start[cell], start[cell + 1]):
+                            b = items[r]
+                            if seen[b] == stamp:
+                                continue
+                            seen[b] = stamp
+                            gap2 = 0.0
+                            for c in range(3):
+                                g = max(tb[b, c] - moved[a, 3 + c], moved[a, c] - tb[b, 3 + c], 0.0)
+                                gap2 += g * g
+                            if gap2 >= touch * touch:
+                                continue
+                            _corners(vb, fb, b, zero, q)
+                            # the first triangle's plane, moved: the second's corners moved back against it
+                            for c in range(3):
+                                for e in range(3):
+                                    q[c, e] -= shift[e]
+                            low = _beyond(plane_a, a, q)
+                            _corners(vb, fb, b, zero, q)
+                            low = max(low, _beyond(plane_b, b, p), _across(p, q))
+                            if low >= touch:
+                                continue
+                            if _triangles_apart(p, q, touch) <= touch:
+                                meet[j] = True
+                                break
+                        if meet[j]:
+                            break
+                    if meet[j]:
+                        break
+                if meet[j]:
+                    break
+            if meet[j]:
+                break
+    return meet
+
+
+@njit(cache=True, nogil=True)
+def _grid(tb, near, search):
+    """A grid of cells over the triangles `near` (boxes tb, widened by search), about one triangle a cell -> (least
+    corner (3,), cell size, cells along each axis (3,), start (cells + 1,), items): the triangles of cell c are
+    items[start[c]:start[c + 1]]."""
+    lo = np.empty(3)
+    hi = np.empty(3)
+    size = 0.0
+    for c in range(3):
+        lo[c] = np.inf
+        hi[c] = -np.inf
+    for i in near:
+        for c in range(3):
+            lo[c] = min(lo[c], tb[i, c] - search)
+            hi[c] = max(hi[c], tb[i, 3 + c] + search)
+            size += tb[i, 3 + c] - tb[i, c]
+    size = max(size / (3.0 * near.shape[0]), search, 1e-9)
+    dims = np.empty(3, np.int64)
+    while True:
+        total = 1
+        for c in range(3):
+            dims[c] = max(1, min(int((hi[c] - lo[c]) / size) + 1, 1 << 20))
+            total *= dims[c]
+        if total <= 8 * near.shape[0] + 64:
+            break
+        size *= 1.5
+    start = np.zeros(total + 1, np.int64)
+    for i in near:
+        i0, j0, k0, i1, j1, k1 = _cells(tb, i, search, lo, size, dims)
+        for x in range(i0, i1 + 1):
+            for y in range(j0, j1 + 1):
+                for z in range(k0, k1 + 1):
+                    start[(x * dims[1] + y) * dims[2] + z + 1] += 1
+    for c in range(total):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    items = np.empty(start[total], np.int64)
+    for i in near:
+        i0, j0, k0, i1, j1, k1 = _cells(tb, i, search, lo, size, dims)
+        for x in range(i0, i1 + 1):
+            for y in range(j0, j1 + 1):
+                for z in range(k0, k1 + 1):
+                    cell = (x * dims[1] + y) * dims[2] + z
+                    items[fill[cell]] = i
+                    fill[cell] += 1
+    return lo, size, dims, start, items
 
 
 @njit(cache=True, nogil=True)
