@@ -167,12 +167,13 @@ def surface_gap(va, fa, vb, fb, shift, search, touch):
     near_b = _inside(tb, gb)
     if near_a.shape[0] == 0 or near_b.shape[0] == 0:
         return search
-    lo, size, dims, start, items = _grid(tb, near_b, search)
+    grid = _grid(tb, near_b, search)
     # every pair whose boxes come within the search, with a lower bound on its distance: the boxes' gap, or all
     # corners of one triangle beyond the other's plane. Measured exactly in the order of that bound, a pair whose
     # bound is no less than the least distance found so far is passed over: neighbours' cut faces, one
     # triangulation set apart by the face clearance, leave a few pairs to measure out of thousands
     seen = np.full(fb.shape[0], -1, np.int64)
+    near, gaps = np.empty(fb.shape[0], np.int64), np.empty(fb.shape[0])
     plane_b = _planes(vb, fb, near_b, zero)
     plane_a = _planes(va, fa, near_a, shift)
     found = np.empty((16 * near_a.shape[0] + 16, 3))  # (a, b, bound) of each pair kept
@@ -180,31 +181,17 @@ def surface_gap(va, fa, vb, fb, shift, search, touch):
     p = np.empty((3, 3))
     q = np.empty((3, 3))
     for a in near_a:
-        i0, j0, k0, i1, j1, k1 = _cells(ta, a, 0.0, lo, size, dims)
         _corners(va, fa, a, shift, p)
-        for x in range(i0, i1 + 1):
-            for y in range(j0, j1 + 1):
-                for z in range(k0, k1 + 1):
-                    cell = (x * dims[1] + y) * dims[2] + z
-                    for s in range(start[cell], start[cell + 1]):
-                        b = items[s]
-                        if seen[b] == a:
-                            continue
-                        seen[b] = a
-                        gap2 = 0.0
-                        for c in range(3):
-                            g = max(tb[b, c] - ta[a, 3 + c], ta[a, c] - tb[b, 3 + c], 0.0)
-                            gap2 += g * g
-                        if gap2 >= search * search:
-                            continue
-                        _corners(vb, fb, b, zero, q)
-                        low = max(math.sqrt(gap2), _beyond(plane_a, a, q), _beyond(plane_b, b, p), _across(p, q))
-                        if low >= search:
-                            continue
-                        if n == found.shape[0]:
-                            found = _grown(found)
-                        found[n, 0], found[n, 1], found[n, 2] = a, b, low
-                        n += 1
+        for i in range(_near(ta, a, search, tb, grid, seen, a, near, gaps)):
+            b = near[i]
+            _corners(vb, fb, b, zero, q)
+            low = max(gaps[i], _beyond(plane_a, a, q), _beyond(plane_b, b, p), _across(p, q))
+            if low >= search:
+                continue
+            if n == found.shape[0]:
+                found = _grown(found)
+            found[n, 0], found[n, 1], found[n, 2] = a, b, low
+            n += 1
     best = search
     for k in _by_bound(found, n):
         if found[k, 2] >= best:
@@ -241,68 +228,76 @@ def surfaces_meet(va, fa, vb, fb, shifts, touch):
     if near_b.shape[0] == 0:
         return meet
     gb = _extent(tb, touch)
-    lo, size, dims, start, items = _grid(tb, near_b, touch)
-    every = np.arange(fa.shape[0])
-    plane_a = _planes(va, fa, every, zero)
+    grid = _grid(tb, near_b, touch)
+    plane_a = _planes(va, fa, np.arange(fa.shape[0]), zero)
     plane_b = _planes(vb, fb, near_b, zero)
     seen = np.full(fb.shape[0], -1, np.int64)
+    near, gaps = np.empty(fb.shape[0], np.int64), np.empty(fb.shape[0])
     moved = np.empty((fa.shape[0], 6))
     p = np.empty((3, 3))
     q = np.empty((3, 3))
+    back = np.empty((3, 3))
     stamp = 0
     for j in range(k):
         shift = shifts[j]
+        unshift = -shift
         for t in range(fa.shape[0]):
             for c in range(3):
                 moved[t, c] = ta[t, c] + shift[c]
                 moved[t, 3 + c] = ta[t, 3 + c] + shift[c]
         for a in range(fa.shape[0]):
-            out = False
-            for c in range(3):
-                if moved[a, c] > gb[3 + c] or moved[a, 3 + c] < gb[c]:
-                    out = True
-            if out:
+            if not _meets_box(moved, a, gb):
                 continue
             stamp += 1
             _corners(va, fa, a, shift, p)
-            i0, j0, k0, i1, j1, k1 = _cells(moved, a, 0.0, lo, size, dims)
-            for x in range(i0, i1 + 1):
-                for y in range(j0, j1 + 1):
-                    for z in range(k0, k1 + 1):
-                        cell = (x * dims[1] + y) * dims[2] + z
-                        for r in range(start[cell], start[cell + 1]):
-                            b = items[r]
-                            if seen[b] == stamp:
-                                continue
-                            seen[b] = stamp
-                            gap2 = 0.0
-                            for c in range(3):
-                                g = max(tb[b, c] - moved[a, 3 + c], moved[a, c] - tb[b, 3 + c], 0.0)
-                                gap2 += g * g
-                            if gap2 >= touch * touch:
-                                continue
-                            _corners(vb, fb, b, zero, q)
-                            # the first triangle's plane, moved: the second's corners moved back against it
-                            for c in range(3):
-                                for e in range(3):
-                                    q[c, e] -= shift[e]
-                            low = _beyond(plane_a, a, q)
-                            _corners(vb, fb, b, zero, q)
-                            low = max(low, _beyond(plane_b, b, p), _across(p, q))
-                            if low >= touch:
-                                continue
-                            if _triangles_apart(p, q, touch) <= touch:
-                                meet[j] = True
-                                break
-                        if meet[j]:
-                            break
-                    if meet[j]:
-                        break
-                if meet[j]:
+            for i in range(_near(moved, a, touch, tb, grid, seen, stamp, near, gaps)):
+                b = near[i]
+                _corners(vb, fb, b, zero, q)
+                # the first triangle's plane moved: the second's corners moved back against it
+                _corners(vb, fb, b, unshift, back)
+                if max(_beyond(plane_a, a, back), _beyond(plane_b, b, p), _across(p, q)) >= touch:
+                    continue
+                if _triangles_apart(p, q, touch) <= touch:
+                    meet[j] = True
                     break
             if meet[j]:
                 break
     return meet
+
+
+@njit(cache=True, nogil=True)
+def _near(boxes, a, limit, tb, grid, seen, stamp, near, gaps):
+    """The second mesh's triangles (boxes tb (m, 6), in `grid` of _grid) whose boxes come within `limit` of box a of
+    boxes, each once (seen (m,) marked with stamp), into near[:n] with their boxes' gaps in gaps[:n] -> n."""
+    lo, size, dims, start, items = grid
+    i0, j0, k0, i1, j1, k1 = _cells(boxes, a, 0.0, lo, size, dims)
+    n = 0
+    for x in range(i0, i1 + 1):
+        for y in range(j0, j1 + 1):
+            for z in range(k0, k1 + 1):
+                cell = (x * dims[1] + y) * dims[2] + z
+                for r in range(start[cell], start[cell + 1]):
+                    b = items[r]
+                    if seen[b] == stamp:
+                        continue
+                    seen[b] = stamp
+                    gap2 = 0.0
+                    for c in range(3):
+                        g = max(tb[b, c] - boxes[a, 3 + c], boxes[a, c] - tb[b, 3 + c], 0.0)
+                        gap2 += g * g
+                    if gap2 < limit * limit:
+                        near[n], gaps[n] = b, math.sqrt(gap2)
+                        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _meets_box(boxes, a, box):
+    """Whether box a of boxes meets box (6,)."""
+    for c in range(3):
+        if boxes[a, c] > box[3 + c] or boxes[a, 3 + c] < box[c]:
+            return False
+    return True
 
 
 @njit(cache=True, nogil=True)
