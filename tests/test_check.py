@@ -439,15 +439,14 @@ def test_a_ray_through_an_edge_gives_up():
 
 def test_the_joint_check_keeps_to_the_engine_until_its_kernel_is_ready(monkeypatch):
     # compiling the kernel (~1.7 s) would cost a first build of a few pieces on a new machine more than it saves
-    from volpuzzle import check as C
     from volpuzzle import precompile
 
     monkeypatch.setattr(precompile, "ready", lambda _dispatcher: False)
-    assert not C._kernel_ready("cylinder_side")
+    assert not precompile.usable("volpuzzle._check_kernels", "cylinder_side")
     monkeypatch.setattr(precompile, "ready", lambda _dispatcher: True)
-    assert C._kernel_ready("cylinder_side")
+    assert precompile.usable("volpuzzle._check_kernels", "cylinder_side")
     monkeypatch.delitem(sys.modules, "numba")  # `volpuzzle check` of a few pieces does not start numba for it
-    assert not C._kernel_ready("cylinder_side")
+    assert not precompile.usable("volpuzzle._check_kernels", "cylinder_side")
 
 
 def _solid_arrays(solid):

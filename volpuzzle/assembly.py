@@ -38,7 +38,6 @@ turns more than a half turn (bend_grid) when that is another.
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -881,11 +880,9 @@ def verify_disassembly(pieces, joints, plan, limit_frac=1e-4, fine=None, max_tri
 def _use_kernel(pieces):
     """Whether the replay of a puzzle of `pieces` pieces spares Booleans with surfaces_meet: from _KERNEL_MIN_PIECES
     on, or once numba has it compiled or cached (the steps are the same either way)."""
-    if pieces >= _KERNEL_MIN_PIECES:
-        return True
     from . import precompile
 
-    return "numba" in sys.modules and precompile.ready(precompile.kernel("volpuzzle._check_kernels", "surfaces_meet"))
+    return pieces >= _KERNEL_MIN_PIECES or precompile.usable("volpuzzle._check_kernels", "surfaces_meet")
 
 
 def _replay_block(meshes, joints, plan, limit_frac, fine, max_tries, groups, block, apart=None, kernel=False):

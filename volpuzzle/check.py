@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -560,6 +559,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
     (both within `share` of the tested volume, which absorbs the polygonal circles). A test whose cylinders no
     triangle comes near is settled by one ray (_left_to_measure); the engine measures the rest. workers: a
     volpuzzle.workers.Workers that tests some of the pieces (the same sentences, in joint order)."""
+    from . import precompile
     from .workers import MeshRef, in_tasks, map_pieces
 
     tested = [(k, j) for k, j in enumerate(joints) if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
@@ -572,7 +572,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
                 tests.setdefault(pid, []).append((k, order, kind, cylinders))
     items = list(tests.items())
     chunks = in_tasks(items, _PIECES_PER_TASK)
-    shortcut = len(items) >= _SHORTCUT_MIN_PIECES or _kernel_ready("cylinder_side")
+    shortcut = len(items) >= _SHORTCUT_MIN_PIECES or precompile.usable("volpuzzle._check_kernels", "cylinder_side")
     found = map_pieces(workers, _joint_measures, chunks,
                        shared=({pid: MeshRef(meshes[pid]) for pid in tests}, share, shortcut), what="check")
     failed = sorted(f for chunk in found for f in chunk)
@@ -651,16 +651,6 @@ def _joint_measures(shared, items):
                 if volume > share * shape.volume():
                     out.append((k, order, volume))
     return out
-
-
-def _kernel_ready(name) -> bool:
-    """Whether kernel `name` of _check_kernels costs nothing to start: numba loaded (as in a build) and the kernel
-    compiled or in numba's cache. A first build of a few pieces on a new machine measures with the engine instead."""
-    if "numba" not in sys.modules:
-        return False
-    from . import precompile
-
-    return precompile.ready(precompile.kernel("volpuzzle._check_kernels", name))
 
 
 def _left_to_measure(mesh, tests):

@@ -74,6 +74,13 @@ def ready(dispatcher) -> bool:
         return False
 
 
+def usable(module, name) -> bool:
+    """Whether a stage may call kernel `name` of `module` without paying to start numba or compile: numba loaded
+    already (as in a build) and the kernel ready. A first build of a few pieces on a new machine, or `volpuzzle check`
+    of a small folder, does the work without it instead."""
+    return "numba" in sys.modules and ready(kernel(module, name))
+
+
 def _indexed(dispatcher) -> bool:
     return os.path.exists(dispatcher._cache._cache_file._index_path)
 
