@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import GeometryError
-from .geometry import is_ok
+from .geometry import boxes_nested, is_ok, kernel_arrays
 from .grid import AXES, piece_id
 from .joint import joint_graph, joints_by_cell
 from .progress import warn
@@ -656,8 +656,7 @@ class _Scene:
             mesh = getattr(mesh, "mesh", mesh)
             self._meshes[pid] = mesh
             self.man[pid] = _as_manifold(mesh, pid)
-            self.verts[pid] = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-            self.faces[pid] = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+            self.verts[pid], self.faces[pid] = kernel_arrays(mesh)
             self.box[pid] = np.array([self.verts[pid].min(axis=0), self.verts[pid].max(axis=0)])
             self.vol[pid] = float(self.man[pid].volume())
         self.booleans = 0
@@ -769,12 +768,8 @@ class _Scene:
             pm, pf = moving[a], fixed[b]
             shifts = np.ascontiguousarray(ts[ks][:, None] * d[None, :])
             meet = surfaces_meet(self.verts[pm], self.faces[pm], self.verts[pf], self.faces[pf], shifts, _TOUCH_MM)
-            lo_f, hi_f = self.box[pf]
             for k, met, shift in zip(ks, meet, shifts, strict=True):
-                lo_m, hi_m = self.box[pm] + shift
-                nested = (np.all(lo_m >= lo_f) and np.all(hi_m <= hi_f)) or (np.all(lo_f >= lo_m)
-                                                                             and np.all(hi_f <= hi_m))
-                if not met and not nested:
+                if not met and not boxes_nested(self.box[pm] + shift, self.box[pf]):
                     apart.add((k, a, b))
         return [t for t in todo if t[:3] not in apart]
 

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
-from .geometry import boolean, check_status, cylinder, is_ok
+from .geometry import boolean, boxes_nested, check_status, cylinder, is_ok, kernel_arrays
 from .geometry import memo as _memo
 from .grid import frame_from_direction
 
@@ -660,8 +660,7 @@ def _left_to_measure(mesh, tests):
     measures the rest, and so every volume a sentence reports."""
     from ._check_kernels import cylinder_side
 
-    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    vertices, faces = kernel_arrays(mesh)
     # far above the engine's own tolerance (1e-12 of the coordinates) and any rounding
     margin = _CLEAR_MARGIN + 1e-9 * float(np.abs(vertices).max(initial=0.0))
     left = []
@@ -1001,8 +1000,7 @@ def pairs_apart(gaps, meshes: dict) -> dict:
     for a, b, _median, smallest in gaps:
         if not smallest > 0.0:  # touching (or not measured: NaN): the closest vertices stand for the rest
             break
-        (alo, ahi), (blo, bhi) = meshes[a].bounds, meshes[b].bounds
-        if not ((np.all(alo >= blo) and np.all(ahi <= bhi)) or (np.all(blo >= alo) and np.all(bhi <= ahi))):
+        if not boxes_nested(meshes[a].bounds, meshes[b].bounds):
             out[frozenset((a, b))] = float(smallest)
     return out
 
@@ -1114,8 +1112,6 @@ def _kernel_gap(refs, arrays, a, b, search):
 
     for pid in (a, b):
         if pid not in arrays:
-            mesh = refs[pid].mesh
-            arrays[pid] = (np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-                           np.ascontiguousarray(mesh.faces, dtype=np.int64))
+            arrays[pid] = kernel_arrays(refs[pid].mesh)
     return float(surface_gap(*arrays[a], *arrays[b], np.zeros(3), float(search), _GAP_TOUCH))
 

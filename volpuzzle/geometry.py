@@ -166,6 +166,20 @@ def boolean_all(first, others, op, what):
     return check_status(manifold3d.Manifold.batch_boolean([first, *others], kinds[op]), what, op)
 
 
+def kernel_arrays(mesh):
+    """A trimesh's vertices (n, 3) float64 and faces (m, 3) int64, C-ordered: the types the compiled kernels are
+    declared for (precompile.KERNELS)."""
+    return (np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+            np.ascontiguousarray(mesh.faces, dtype=np.int64))
+
+
+def boxes_nested(a, b):
+    """Whether one box (2, 3) of a and b holds the other: surfaces that do not meet then prove nothing, as one solid
+    may lie inside the other (check.pairs_apart, assembly._Scene._unmet)."""
+    (alo, ahi), (blo, bhi) = a, b
+    return bool((np.all(alo >= blo) and np.all(ahi <= bhi)) or (np.all(blo >= alo) and np.all(bhi <= ahi)))
+
+
 def check_solid(mesh, what):
     """Raise GeometryError unless mesh is watertight, consistently wound, one body and encloses positive volume."""
     if len(mesh.faces) == 0:
