@@ -11,7 +11,8 @@
   builds them (--without-labels: 8x8x16 once more with output.labels false, to show what the ids cost);
 - --jobs 1 against --jobs 2 on the 256-piece build, and the most any split could gain: --jobs 1 already keeps more
   than one core busy (manifold's and numba's threads), so its CPU seconds spread over every core bound the speed-up;
-- bunny-cage against a plain manifold3d baseline written here: the same mesh cut into 2x2x2 boxes with 12 pins;
+- bunny-cage against a plain manifold3d baseline written here: the same mesh cut into 2x2x2 boxes with 12 pins, run in
+  its own process and timed from before its imports, as each build is;
 - every spec in specs/ as written, with its joint figures (issue 9): touching pairs, those with room, those pinned,
   pieces without a joint, joint-graph parts, largest/smallest piece volume.
 
@@ -109,6 +110,13 @@ def run_median(spec, repeat, jobs=1):
 def _median(ordered):
     """The middle item of a sorted list (the lower of the two middle ones)."""
     return ordered[(len(ordered) - 1) // 2]
+
+
+def run_baseline(out_dir):
+    """baseline_bunny in a fresh interpreter, as run_child runs a build -> (wall s, CPU s, pieces)."""
+    proc = subprocess.run([sys.executable, __file__, "--baseline-child", str(out_dir)], capture_output=True, text=True,
+                          check=True)
+    return tuple(json.loads(proc.stdout.strip().splitlines()[-1]))
 
 
 def run_child(spec, jobs=1, env=None):
@@ -217,12 +225,14 @@ def target_1024(torus, args, size_note):
 
 def baseline_bunny(out_dir, size=120.0, radius=2.5, length=6.0, clearance=0.15):
     """The bunny cut into 2x2x2 boxes with plain manifold3d, a pin across each of the 12 inner faces (united with
-    one side, its hole with clearance cut from the other), every piece written as STL. -> wall s, CPU s, pieces"""
+    one side, its hole with clearance cut from the other), every piece written as STL. -> wall s, CPU s, pieces.
+    Timed from before its imports, as child() times a build: run in a fresh process (run_baseline), both pay the
+    same start-up."""
+    t, c = time.perf_counter(), time.process_time()
     import manifold3d as m3d
     import numpy as np
     import trimesh
 
-    t, c = time.perf_counter(), time.process_time()
     mesh = trimesh.load(REPO / "specs" / "models" / "cgal_bunny00.ply", force="mesh", process=False)
     mesh.apply_scale(size / float(np.max(mesh.extents)))
     solid = m3d.Manifold(m3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
@@ -321,9 +331,13 @@ def main():
                     help="--jobs of the twisted torus builds at each size (default 1; the 256-piece build is also "
                          "run with --jobs 2)")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--baseline-child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(args.child[0], args.child[1], int(args.child[2]))
+        return
+    if args.baseline_child:
+        print(json.dumps(baseline_bunny(args.baseline_child)))
         return
     if args.only_mesh:
         args.no_cold = args.no_torus = args.no_examples = args.large_mesh = True
@@ -393,9 +407,9 @@ def main():
                 show(f"{spec.stem}", run_child(spec))
         if not args.no_bunny:
             # interleaved: baseline, build, baseline, so that a change in the machine's load shows
-            first = baseline_bunny(Path(tmp) / "baseline")
+            first = run_baseline(Path(tmp) / "baseline")
             bunny = run_child(REPO / "specs" / "bunny-cage.yaml")
-            second = baseline_bunny(Path(tmp) / "baseline2")
+            second = run_baseline(Path(tmp) / "baseline2")
             show("bunny-cage", bunny)
             for k, (t_base, c_base, n_base) in enumerate((first, second)):
                 print(f"plain manifold3d baseline {k + 1} (2x2x2 boxes, 12 pins, {n_base} STL files): {t_base:.1f} s "
