@@ -483,3 +483,29 @@ def test_a_label_keeps_clear_of_a_snap_pin_where_it_swells():
         want = J.outer_radius(j.radius, shape) + j.clearance + L.JOINT_CLEAR_MM
         assert np.allclose(radii, want)
     assert J.outer_radius(1.0, "snap") > J.outer_radius(1.0, "cylinder")
+
+
+def test_a_piece_cut_by_a_mesh_is_labelled_on_its_own_faces_from_the_start(monkeypatch):
+    # a mesh model's piece: the cage cell cut below z = 11, so its inner faces cover only their lowest third
+    tiling, fmap, joints, cell, body = _box_puzzle(v_joint=False)
+    piece = body ^ m3.Manifold.cube((40.0, 40.0, 12.0)).translate((-5.0, -5.0, -1.0))
+    mine = [j for j in joints if cell.index in (tuple(j.pin_cell), tuple(j.hole_cell))]
+    cover = []
+    measured = L._measured
+
+    def counted(*args, **kwargs):
+        out = measured(*args, **kwargs)
+        cover.append(float(np.mean(out[1])))
+        return out
+
+    monkeypatch.setattr(L, "_measured", counted)
+    out, site, note = L.label_piece(piece, cell, tiling, fmap, mine, texts=("p0-0-0", "1"), cut_by_mesh=True)
+    assert note is None and site.text == "p0-0-0" and site.center[2] < 11.0 - site.height_mm / 2
+    assert cover == [1.0]  # one site measured, on the piece: none lost off it
+    ink = L.text_cross_section(site.text, site.height_mm).area() * L.DEPTH_MM
+    assert abs(piece.volume() - out.volume() - ink) <= 0.2 * ink
+    G.check_solid(G.to_trimesh(out), cell.id)
+    # searched on the cage cell's faces first, sites in the middle of the face are measured and found off the piece
+    cover.clear()
+    L.label_piece(piece, cell, tiling, fmap, mine, texts=("p0-0-0", "1"))
+    assert min(cover) < 0.5 and len(cover) > 1

@@ -1034,17 +1034,20 @@ class _BodyFaces:
 
 
 def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, what=None, texts=None, avoid=None,
-                tries=6):
+                tries=6, cut_by_mesh=False):
     """Engrave the piece's id where it can be read -> (Manifold, LabelSite or None, note): the body unchanged and
     a note saying why when no place holds it. Tried in turn: each text of `texts` (default: just `text`, the piece
     id), at each stroke of STROKES_MM, on the best `tries` sites; a site is passed over when its face faces `avoid`
     (3,) (the bed), lies off the body (a cage's face outside a mesh) or the engraving fails. When sites were found
-    off the body, the search runs again on the piece's real faces (_BodyFaces)."""
+    off the body, the search runs again on the piece's real faces (_BodyFaces). cut_by_mesh: the piece is its cage
+    cell cut by a mesh model, so the search runs on its real faces from the start: most of such a cell's faces lie
+    off the piece, and each site measured there is a try lost (the bunny's pieces took the number after the id's
+    tries had all landed off them)."""
     texts = list(texts) if texts else [str(text if text is not None else cell.id)]
     reasons = []
-    region = None
     budget = tries
     arrays = _mesh_arrays(body)  # the body's triangles, once for every site measured on it
+    region = _BodyFaces(body, arrays) if cut_by_mesh else None
     measured = {}  # sites, for label_sites: each finer stroke and each pass tries the best ones again
     on_body = {}  # id of a site -> (the site, whether its text lies on the body)
     for _ in range(2):
@@ -1133,9 +1136,10 @@ def engrave_bed(body, rotation, text, depth=DEPTH_MM, what=None):
     return body, None
 
 
-def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
+def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None, cut_by_mesh=False):
     """Engrave each piece's id on an inner face no joint uses, off its bed side. -> (pieces, {id: label report or
-    None}, mm^3 removed). workers: a volpuzzle.workers.Workers that labels some of the pieces (same results)."""
+    None}, mm^3 removed). workers: a volpuzzle.workers.Workers that labels some of the pieces (same results);
+    cut_by_mesh: the pieces are cage cells cut by a mesh model (label_piece)."""
     import dataclasses
 
     from .joint import cell_joints
@@ -1148,7 +1152,7 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
     for k, p in enumerate(pieces):
         pose = poses.get(p.id)
         items.append((k, p.id, tuple(p.cell), MeshRef(p.mesh), p.volume, None if pose is None else pose.down))
-    shared = (tiling, fmap, touching)
+    shared = (tiling, fmap, touching, bool(cut_by_mesh))
     results = map_pieces(workers, _label_one, items, shared=shared, what="label")
     out = [p if r[0] is None else dataclasses.replace(p, mesh=r[0].mesh, volume=r[1],
                                                       triangles=int(len(r[0].mesh.faces)))
@@ -1159,20 +1163,20 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None):
 
 
 def _label_one(shared, item):
-    """One piece of label_pieces, wherever it runs: shared (tiling, fmap, {cell: its joints}), item (number, id,
-    cell, MeshRef, volume, bed direction or None) -> (MeshRef or None when unchanged, volume, label report, mm^3
-    removed)."""
+    """One piece of label_pieces, wherever it runs: shared (tiling, fmap, {cell: its joints}, cut_by_mesh), item
+    (number, id, cell, MeshRef, volume, bed direction or None) -> (MeshRef or None when unchanged, volume, label
+    report, mm^3 removed)."""
     from .geometry import solid_of, to_trimesh
     from .workers import MeshRef
 
-    tiling, fmap, touching = shared
+    tiling, fmap, touching, cut_by_mesh = shared
     k, pid, cell, ref, volume_before, down = item
     # the piece id, else its number in the piece list (report.md gives the key)
     texts = (pid, str(k + 1))
     mine = touching.get(cell, [])  # the only joints label_piece looks at
     try:
         body, site, note = label_piece(solid_of(ref.mesh, pid), tiling.cell(cell), tiling, fmap, mine,
-                                       what=pid, texts=texts, avoid=down)
+                                       what=pid, texts=texts, avoid=down, cut_by_mesh=cut_by_mesh)
     except GeometryError as e:
         # A label is a convenience: a piece too thin to take the groove keeps its material and says why.
         return None, volume_before, {"skipped": str(e)}, 0.0

@@ -303,7 +303,8 @@ def _finish(spec, s, pieces, expected, clearance, timer, progress, workers=None)
     if spec.output.labels:
         with timer("label", progress):
             pieces, labels, engraved = _replaced(pieces, *label_pieces(s.tiling, s.fmap, pieces, s.joints, poses,
-                                                                       workers=workers))
+                                                                       workers=workers,
+                                                                       cut_by_mesh=s.model.mesh is not None))
     with timer("layout", progress):
         pieces, cut = _replaced(pieces, *base_cuts(pieces, poses, workers=workers))
     if spec.output.labels:
