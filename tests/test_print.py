@@ -473,14 +473,24 @@ def test_loose_dowels_lie_flat_on_the_plate_on_a_flat_that_holds_them():
 
 
 @pytest.mark.slow
-def test_small_mesh_build_labels_every_piece_and_keeps_the_face_clearance(tmp_path):
+def test_small_mesh_build_labels_every_piece_and_keeps_the_face_clearance(tmp_path, monkeypatch):
     from helpers_build import example_spec
 
     import volpuzzle
+    from volpuzzle import label
 
+    asked = []
+    labelled = label.label_pieces
+
+    def spy(*args, **kwargs):
+        asked.append(kwargs.get("cut_by_mesh"))
+        return labelled(*args, **kwargs)
+
+    monkeypatch.setattr(label, "label_pieces", spy)
     report = volpuzzle.build(example_spec("gear-cylinder", tmp_path, tolerance=0.2), jobs=1)
     labels = {p["id"]: p["label"] for p in report["pieces"]}
     assert all(v.get("text") for v in labels.values()), labels
+    assert asked == [True]  # sought on the pieces' own faces, not the cage cells'
     printable = report["checks"]["printability"]
     assert printable["unlabelled"] == [] and not printable["failures"]
     # neighbours apart by the clearance, and the volume it took is in the volume check
