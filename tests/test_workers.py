@@ -81,6 +81,33 @@ def test_this_process_never_waits_for_a_slow_worker(pool):
     assert busy.result() == 2.0
 
 
+def test_a_worker_gets_runs_of_items_that_shrink_towards_the_end(pool, monkeypatch):
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    runs = []
+    submit = pool._executor.submit
+
+    def counted(fn, *args):
+        if fn is W._run:
+            runs.append(len(args[2]))  # (fn, handle, items)
+        return submit(fn, *args)
+
+    monkeypatch.setattr(pool._executor, "submit", counted)
+    out = pool.map_pieces(_square_plus, list(range(200)), shared={"offset": 2}, what="test")
+    assert [r[2] for r in out] == [k * k + 2 for k in range(200)]
+    assert sum(runs) == 200 and max(runs) == W._MOST_PER_TASK  # a small item travels with others
+    assert runs[-1] == 1 and runs == sorted(runs, reverse=True)  # the last ones given out are short
+
+
+def test_this_process_does_a_busy_workers_runs_itself(pool):
+    busy = pool.submit(_sleep, 2.0)
+    t0 = time.perf_counter()
+    out = pool.map_pieces(_square_plus, list(range(64)), shared={"offset": 3}, what="test")
+    assert time.perf_counter() - t0 < 1.5
+    assert [r[2] for r in out] == [k * k + 3 for k in range(64)]
+    assert {r[0] for r in out} == {os.getpid()}
+    assert busy.result() == 2.0
+
+
 def test_meshes_travel_as_arrays_and_come_back_equal(pool, monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
     boxes = [trimesh.creation.box(extents=(1.0 + k, 2.0, 3.0)) for k in range(3)]
