@@ -176,8 +176,18 @@ def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
 @pytest.mark.slow
 def test_a_worker_that_dies_gives_one_geometry_error(monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
-    with W.Workers(2) as workers, pytest.raises(GeometryError, match=r"^label: a worker process died .*try --jobs 1"):
+    with W.Workers(2) as workers, pytest.raises(GeometryError, match=r"^label: a worker process died while working "
+                                                                     r"on item 3 of 5 .*try --jobs 1"):
         workers.map_pieces(_dies_on_two, list(range(5)), what="label")
+    # the first run given out holds the last 8 items; the message names them all
+    with W.Workers(2) as workers, pytest.raises(GeometryError, match=r"on one of items 193-200 of 200 "):
+        workers.map_pieces(_dies_on_two, [(k + 3) % 200 for k in range(200)], what="label")
+
+
+def test_a_run_of_items_is_named_as_its_items():
+    assert W._which([2]) == "item 3"
+    assert W._which([11, 10, 9]) == "one of items 10-12"
+    assert W._which([7, 2]) == "one of items 3, 8"
 
 
 def _pid_and_square(x):

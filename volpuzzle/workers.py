@@ -141,6 +141,16 @@ def _shared(handle: _Handle | None):
     return _CACHE[handle.token]
 
 
+def _which(ks) -> str:
+    """The items of a run (0-based indices), as a message names them: "item 3", "one of items 5-12"."""
+    ks = sorted(k + 1 for k in ks)
+    if len(ks) == 1:
+        return f"item {ks[0]}"
+    if ks[-1] - ks[0] == len(ks) - 1:
+        return f"one of items {ks[0]}-{ks[-1]}"
+    return "one of items " + ", ".join(map(str, ks))
+
+
 def _run(fn, handle, items):
     shared = _shared(handle)
     return [fn(shared, item) for item in items]
@@ -217,8 +227,8 @@ class Workers:
             if done is not None:
                 done(count, value)
 
-        def died(k, e):
-            return GeometryError(f"{what}: a worker process died while working on item {k + 1} of {n} ({e}); "
+        def died(ks, e):
+            return GeometryError(f"{what}: a worker process died while working on {_which(ks)} of {n} ({e}); "
                                  f"try --jobs 1")
 
         def collect(fut):
@@ -226,7 +236,7 @@ class Workers:
             try:
                 values = fut.result()
             except concurrent.futures.process.BrokenProcessPool as e:
-                raise died(ks[0], e) from e
+                raise died(ks, e) from e
             for k, value in zip(ks, values, strict=True):
                 if not finished[k]:  # else this process did it too (below) and was first
                     record(k, value)
@@ -244,7 +254,7 @@ class Workers:
                 try:
                     fut = self._executor.submit(_run, fn, handle, [items[k] for k in ks])
                 except (RuntimeError, concurrent.futures.process.BrokenProcessPool) as e:
-                    raise died(ks[0], e) from e
+                    raise died(ks, e) from e
                 running[fut] = ks
             if _MAIN_TAKES_ITEMS:
                 if pending:
