@@ -13,10 +13,9 @@ may not have children, and the cluster already spreads the work.
 How work is shared (map_pieces). This process takes items from the front of the list while the workers take them
 from the back, in runs of up to _MOST_PER_TASK items that shrink towards the end, two runs queued each, and only once
 a worker has started, so this process never waits for a start-up; a run still queued when the front reaches it is
-taken back. Every item goes through the same function wherever it
-runs, and the results come back in item order, so where an item ran never changes the result. The big inputs every
-item needs (`shared`: the tiling, the map, the joints) are pickled once into a file that each worker reads once
-(cached by token), not sent with every item.
+taken back. Every item goes through the same function wherever it runs, and the results come back in item order, so
+where an item ran never changes the result. The big inputs every item needs (`shared`: the tiling, the map, the
+joints) are pickled once into a file that each worker reads once (cached by token), not sent with every item.
 """
 
 from __future__ import annotations
