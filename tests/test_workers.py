@@ -500,7 +500,7 @@ def test_cell_surfaces_made_ahead_are_cell_surfaces_and_build_the_same_pieces(po
         time.sleep(0.01)
     time.sleep(1.0)  # a few surfaces a second at least
     begun.stop()
-    made = A._KEPT[begun.token][3]
+    made = A._KEPT[begun.token].surfaces
     cells = sorted(s.tiling.cells)
     # the last cells first, each exactly cell_surface's
     assert made and sorted(made) == [(c, 0.15) for c in cells[len(cells) - len(made):]]

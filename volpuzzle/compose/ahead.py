@@ -11,7 +11,7 @@ map and clearance, wherever it is made, so the pieces do not change.
 from __future__ import annotations
 
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .sampling import sample_parameters
@@ -22,9 +22,17 @@ if TYPE_CHECKING:
 
     from ..workers import Background, Prefetch, Workers
 
-# In the process that sampled: token -> [tiling, map, Sampling, {(cell index, clearance): (vertices, faces)}]; one
-# build's at a time
-_KEPT: dict[str, list] = {}
+@dataclass
+class _Kept:
+    """What a process keeps under a build's token: the inputs the surfaces are made from (tiling, map, Sampling; in
+    the process that sampled, until its surfaces are made) and the surfaces, {(cell index, clearance): (vertices,
+    faces)}."""
+
+    inputs: tuple | None = None
+    surfaces: dict = field(default_factory=dict)
+
+
+_KEPT: dict[str, _Kept] = {}  # token -> _Kept; one build's at a time
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,8 +49,7 @@ class Ahead:
         for the pieces this process builds."""
         made = self.surfaces.stop() if self.surfaces is not None else None
         if made:
-            kept = _KEPT.setdefault(self.token, [None, None, None, {}])
-            kept[3].update(made)
+            _KEPT.setdefault(self.token, _Kept()).surfaces.update(made)
 
 
 def begin(workers: Workers, tiling, fmap, tolerance: float, clearance: float | None) -> Ahead:
@@ -59,7 +66,7 @@ def _sample(token, tiling, fmap, tolerance):
     """sample_parameters, its inputs and result kept under `token` in the process that ran it, for _surfaces."""
     sampling = sample_parameters(tiling, fmap, tolerance)
     _KEPT.clear()
-    _KEPT[token] = [tiling, fmap, sampling, {}]
+    _KEPT[token] = _Kept((tiling, fmap, sampling))
     return sampling
 
 
@@ -68,15 +75,15 @@ def _surfaces(stopped: Callable[[], bool], token, clearance, cells):
     surfaces made ({(cell index, clearance): (vertices, faces)}; none in another process). This process uses them
     for the pieces it builds, and the one that stopped it for its own."""
     kept = _KEPT.get(token)
-    if kept is None or kept[0] is None:
+    if kept is None or kept.inputs is None:
         return {}
-    tiling, fmap, sampling, surfaces = kept
+    tiling, fmap, sampling = kept.inputs
     for index in cells:
         if stopped():
             break
-        surfaces[(tuple(index), clearance)] = cell_surface(tiling.cell(index), sampling, fmap, clearance)
-    kept[:3] = None, None, None  # the inputs are the build's: not held here any longer
-    return dict(surfaces)
+        kept.surfaces[(tuple(index), clearance)] = cell_surface(tiling.cell(index), sampling, fmap, clearance)
+    kept.inputs = None  # the build's: not held here any longer
+    return dict(kept.surfaces)
 
 
 def surface(token: str | None, index, clearance: float):
@@ -88,7 +95,7 @@ def surface(token: str | None, index, clearance: float):
         if _KEPT:  # another build's, done with
             _KEPT.clear()
         return None
-    return kept[3].pop((tuple(index), float(clearance)), None)
+    return kept.surfaces.pop((tuple(index), float(clearance)), None)
 
 
 def forget(token: str) -> None:
