@@ -750,7 +750,6 @@ class _Scene:
                 return False, (pm_id, pf_id, t)
         return True, None
 
-
     def _unmet(self, todo, moving, fixed, ts, d):
         """The samples (k, a, b, lim) of sweep_clear, in order, less those at which surfaces_meet proves the two
         pieces' surfaces apart while neither box holds the other: two connected solids whose surfaces do not meet
