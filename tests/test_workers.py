@@ -6,6 +6,7 @@ import hashlib
 import json
 import multiprocessing
 import os
+import threading
 import time
 
 import numpy as np
@@ -415,6 +416,39 @@ def test_pictures_are_the_same_files_wherever_they_are_drawn(pool, tmp_path, wor
     assert where[0] and (where[1] or not worker_busy)
     if busy is not None:
         assert busy.result() == 1.0
+
+
+def _write_where(path, text, pause):
+    time.sleep(pause)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(f"{text} {os.getpid()} {threading.current_thread().name}")
+
+
+@pytest.mark.parametrize("worker_busy", [False, True])
+def test_plates_are_written_by_the_workers_from_the_first_and_on_the_3mf_thread_from_the_last(pool, tmp_path,
+                                                                                            worker_busy):
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.export import write_build
+
+    pieces = make_pieces()
+    busy = pool.submit(_sleep, 2.0) if worker_busy else None
+    plates = [f"plates/plate-{k:02d}.3mf" for k in range(1, 5)]
+    extras = {"preview.png": W.Remote(_write_where, "preview", 0.0),
+              **{rel: W.Remote(_write_where, rel, 0.15) for rel in plates}}
+    out = write_build(tmp_path / "c", pieces, make_report(pieces), extras=extras, workers=pool)
+    drawn = {rel: (out / rel).read_text(encoding="utf-8").split() for rel in extras}
+    assert all(d[0] == rel for rel, d in drawn.items() if rel != "preview.png")
+    here = {rel: int(d[1]) == os.getpid() for rel, d in drawn.items()}
+    # the preview is this process's own; lib3mf writes one file at a time in a process, so a plate is never
+    # written on this process's main thread, beside the puzzle's 3MF on the 3MF thread
+    assert here["preview.png"] and drawn["preview.png"][2] == "MainThread"
+    assert all(drawn[rel][2].startswith("volpuzzle-3mf") for rel in plates if here[rel])
+    if worker_busy:  # none begun by a worker: all here, none waited for
+        assert all(here[rel] for rel in plates)
+        assert busy.result() == 2.0
+    else:
+        assert not here[plates[0]] and here[plates[-1]]
 
 
 @pytest.mark.parametrize("per_task", [1, 2])

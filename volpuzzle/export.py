@@ -620,11 +620,14 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     try:
         report = dict(report)
         (tmp / "pieces").mkdir()
-        # the pictures: this process draws the first itself once the pieces are written (the preview; the steps
-        # drawn here instead cost it more, 1.3 against 1.0 CPU s at 32 pieces), the rest are begun in the workers
-        # meanwhile, and one no worker has begun by then is drawn here too (workers.Prefetch) rather than waited for;
-        # a build begins the steps' pictures before this, once the assembly is known (layout.step_pictures_ahead)
-        remote = [rel for rel, w in sorted((extras or {}).items()) if workers is not None and isinstance(w, Remote)]
+        # the extras a worker may write (workers.Remote): this process draws the first picture itself once the
+        # pieces are written (the preview; the steps drawn here instead cost it more, 1.3 against 1.0 CPU s at 32
+        # pieces), the rest (other pictures, then the plates) are begun in the workers meanwhile, and one no worker
+        # has begun by then is done here too (workers.Prefetch) rather than waited for: a plate on the 3MF thread,
+        # from the last while the workers go from the first. A build begins the steps' pictures before this, once
+        # the assembly is known (layout.step_pictures_ahead)
+        remote = sorted((rel for rel, w in (extras or {}).items() if workers is not None and isinstance(w, Remote)),
+                        key=lambda rel: (rel.endswith(".3mf"), rel))
         ahead = []
         for rel in remote[1:]:
             (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -636,6 +639,9 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
               "millimeter",
               [(pin_triangles or {}).get(pid) for pid, _ in items], DEFAULT_ACCENT,
               None if triangle_colors is None else [triangle_colors.get(pid) for pid, _ in items])
+        for dest, job in reversed(ahead):
+            if dest.suffix == ".3mf":
+                write(dest, job.result)
         entries = {e.get("id"): dict(e) for e in report.get("pieces") or []}
         piece_entries = []
         for (pid, mesh), piece, rgb in zip(items, pieces, colors, strict=True):
@@ -660,7 +666,8 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
             write(dest, writer, dest)
         # the last first: the workers take them in order, so those not begun are at the back
         for dest, picture in reversed(ahead):
-            named(dest, picture.result)
+            if dest.suffix != ".3mf":
+                named(dest, picture.result)
         for job in pending:
             job.result()
         if report.get("preview") and not (tmp / report["preview"]).is_file():

@@ -542,7 +542,6 @@ def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=
                        step_pictures=None):
     """Plates and preview as writers for the export stage. -> (placements, plates, {relative path: writer}).
     step_pictures: the steps' pictures as step_pictures_ahead began them, else they are drawn with the rest."""
-    from .io.threemf import write_3mf
     from .workers import MeshRef, Remote
 
     pin_dirs, openings, _ = joint_directions(joints)
@@ -551,21 +550,16 @@ def plates_and_preview(spec, pieces, dowels, joints, colors, pins=None, texture=
     placements, plates = layout(parts, spec.output.plate, spec.output.spacing, pin_dirs, margin=spec.output.margin,
                                 poses=poses, hole_openings=openings)
     meshes = dict(parts)
+    # the plates and pictures as plain functions of plain data (workers.Remote), which the export may write in a
+    # worker while this process writes the pieces: lib3mf writes one file at a time in a process, and at 1024 pieces
+    # the puzzle's 3MF and its plates' were ~7 s of it
     extras = {}
     for pl in plates:
-        def write_plate(path, pl=pl):
-            objs = []
-            for place in placements:
-                if place.plate != pl.index:
-                    continue
-                m = meshes[place.name]
-                v = m.vertices @ place.transform[:3, :3].T + place.transform[:3, 3]
-                objs.append((place.name, v, m.faces, rgb.get(place.name, (200, 200, 200)), None))
-            write_3mf(path, objs, materials=[(pins or {}).get(o[0]) for o in objs],
-                      colors=None if texture is None else [texture.get(o[0]) for o in objs])
-        extras[pl.file] = write_plate
-    # the pictures as plain functions of plain data (workers.Remote), which the export may draw in a worker while
-    # this process writes the pieces
+        on = [place for place in placements if place.plate == pl.index]
+        extras[pl.file] = Remote(_write_plate, [(place.name, MeshRef(meshes[place.name]), place.transform,
+                                                 rgb.get(place.name, (200, 200, 200))) for place in on],
+                                 [(pins or {}).get(place.name) for place in on],
+                                 None if texture is None else [texture.get(place.name) for place in on])
     refs = [MeshRef(p.mesh) for p in pieces]
     names = [p.id for p in pieces]
     index = {p.id: k for k, p in enumerate(pieces)}
@@ -601,6 +595,16 @@ def _save_steps(pictures, path):
     from .preview import save_pictures
 
     save_pictures(path, pictures.result())
+
+
+def _write_plate(path, items, materials, colors):
+    """A plate's 3MF: items [(name, MeshRef, (4, 4) transform to the plate, rgb)]; materials and colors as write_3mf
+    takes them (one entry per item)."""
+    from .io.threemf import write_3mf
+
+    objs = [(name, ref.mesh.vertices @ transform[:3, :3].T + transform[:3, 3], ref.mesh.faces, rgb, None)
+            for name, ref, transform, rgb in items]
+    write_3mf(path, objs, materials=materials, colors=colors)
 
 
 def _write_preview(path, refs, names, colors, pins, texture, on_plate, plate, title, steps):
