@@ -15,6 +15,7 @@ import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from json.encoder import encode_basestring_ascii
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -137,7 +138,7 @@ def dumps_report(obj, indent: int = 2, _level: int = 0) -> str:
     if isinstance(obj, dict):
         if not obj:
             return "{}"
-        body = [f"{inner}{json.dumps(k)}: {dumps_report(v, indent, _level + 1)}" for k, v in obj.items()]
+        body = [f"{inner}{_json_scalar(k)}: {dumps_report(v, indent, _level + 1)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(body) + "\n" + pad + "}"
     if isinstance(obj, list):
         # a list holding a dict is never kept on one line: no need to write it out whole to measure it
@@ -146,7 +147,20 @@ def dumps_report(obj, indent: int = 2, _level: int = 0) -> str:
             if len(flat) <= 80:
                 return flat
         return "[\n" + ",\n".join(inner + dumps_report(v, indent, _level + 1) for v in obj) + "\n" + pad + "]"
-    return json.dumps(obj, allow_nan=False)
+    return _json_scalar(obj)
+
+
+def _json_scalar(x) -> str:
+    """json.dumps(x, allow_nan=False), the common plain types without its call: a 1024-piece report has ~200k values,
+    and json.dumps per value was half the time of writing it (1.1 -> 0.5 s)."""
+    t = type(x)
+    if t is str:
+        return encode_basestring_ascii(x)
+    if t is int:
+        return int.__repr__(x)
+    if t is float and math.isfinite(x):
+        return float.__repr__(x)
+    return json.dumps(x, allow_nan=False)
 
 
 def _fmt(x, nd=3):
