@@ -389,6 +389,10 @@ def main():
                   f"split of its {one['cpu'] + one['cpu_children']:.1f} CPU s can be more than {cores / busy:.2f}x "
                   f"faster; --jobs 2 spent {two['cpu'] + two['cpu_children']:.1f} CPU s (its second process "
                   f"starts and reads the pieces too)")
+            # what the second process costs of its own bounds it harder: its CPU seconds on every core at once
+            floor = (two["cpu"] + two["cpu_children"]) / cores
+            print(f"  --jobs 2's own {two['cpu'] + two['cpu_children']:.1f} CPU s, every core busy all the time, "
+                  f"would take {floor:.1f} s: at most {one['wall'] / floor:.2f}x faster than --jobs 1")
             if args.repeat > 1:
                 # the medians above come from runs minutes apart; a pair run back to back shares the machine's mood
                 spec = torus(GRIDS[256])
