@@ -190,8 +190,9 @@ def _build(spec, target, jobs, force, progress, workers, t_start):
         assembly = replay_assembly(s.plan, s.pieces, s.joints, spec.joints.allow, spec.randomize is not None,
                                    tiling=s.tiling, fmap=s.fmap, workers=workers,
                                    apart=pairs_apart(s.face_gaps, meshes))
-    colors, pins = piece_colors(len(s.pieces)), pin_triangles(s.pieces, s.joints)
+    colors = piece_colors(len(s.pieces))
     pictures = step_pictures_ahead(workers, s.pieces, colors, assembly.get("steps"))
+    pins = pin_triangles(s.pieces, s.joints)  # after: the worker has nothing to do until it has the steps (0.5 s)
     texture, texture_report = None, None
     if spec.texture is not None:
         with timer("texture", progress):
