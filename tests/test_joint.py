@@ -505,6 +505,33 @@ def test_face_shapes_of_all_faces_at_once_are_each_faces_own():
         assert list(depths[2 * n:2 * n + 2]) == [J._center_len(lengths, idx, f.axis) for idx in (f.lower, f.upper)]
 
 
+@pytest.mark.parametrize("style", ["pin", "dowel"])
+def test_fits_of_all_faces_at_once_are_each_faces_own(style):
+    # placement measures every face at once (_fits_each on _stacks): each face's points must fit exactly where _fits
+    # of that face alone says they do, for every size tried, leaning or upright, with and without the tilt limit
+    vol = ring(twist=np.pi / 2)
+    t = _tiling(vol, (3, 3, 4), (2,))
+    fmap = _map(vol)
+    setup = J._setup(t, fmap, _spec(style=style))
+    rng = np.random.default_rng(5)
+    # pins along the faces' normals, and along directions leaning up to ~40 degrees, past the tilt limit
+    data = [J._directed(shape, None if n % 3 == 0 else shape.nrm[len(shape.nrm) // 2] + rng.uniform(-0.7, 0.7, 3))
+            for n, shape in enumerate(setup.shapes)]
+    assert {fd.face.axis for fd in data} == {0, 1, 2}
+    stacks = J._stacks(data)
+    assert sorted(n for st in stacks for n in st.numbers) == list(range(len(data)))
+    seen = set()
+    for s in setup.steps:
+        for lean, limit in ((True, True), (True, False), (False, True)):
+            each = J._fits_each(stacks, s, lean, limit)
+            assert sorted(each) == list(range(len(data)))
+            for n, fd in enumerate(data):
+                alone = J._fits(fd, s, lean, limit)
+                assert each[n].shape == alone.shape and np.array_equal(each[n], alone)
+                seen.add(bool(alone.any()))
+    assert seen == {True, False}  # some faces fit somewhere and some nowhere: the comparison means something
+
+
 def test_side_distance_beside_a_face_goes_straight_to_its_rim():
     # one face, its samples on a 3 x 3 grid in z = 0; the rim samples are not inside it
     g = np.array([0.0, 1.0, 2.0])
