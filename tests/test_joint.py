@@ -541,7 +541,9 @@ def test_side_distance_beside_a_face_goes_straight_to_its_rim():
     inner[0, 4] = True
     p = np.array([[1.1, 0.9, 0.5], [5.0, 1.0, 3.0]])
     # above the middle: its tangent plane; beside the face: the nearest rim sample (2, 1, 0)
-    assert np.allclose(K.face_distance(p, x, nrm, inner), [0.5, np.hypot(3.0, 3.0)])
+    assert np.allclose(K.face_distance(p, x, nrm, inner, np.ones(1, bool)), [0.5, np.hypot(3.0, 3.0)])
+    # a face left out is not measured
+    assert np.isinf(K.face_distance(p, x, nrm, inner, np.zeros(1, bool))).all()
 
 
 def test_cylinders_said_apart_are_apart_by_the_gap():

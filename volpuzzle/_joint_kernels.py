@@ -71,15 +71,18 @@ def cylinders_apart(p0, p1, rp, q0, q1, rq, gap):
 
 
 @njit(cache=True, nogil=True)
-def face_distance(p, x, nrm, inner):
+def face_distance(p, x, nrm, inner, use):
     """_Sides.distance over sampled faces: points p (n, 3); samples x (f, m, 3), their unit normals nrm (f, m, 3)
-    (zero where collapsed) and whether each lies inside its face (f, m) -> (n,) mm to the nearest face: across the
-    tangent plane of the nearest sample inside a face, straight to a sample on its rim. Compiled: placing the joints
-    of 1024 pieces measures ~8k point sets, which numpy spent ~5 s on (the serial joint stage)."""
+    (zero where collapsed) and whether each lies inside its face (f, m); the faces to measure, use (f,) -> (n,) mm to
+    the nearest of them (inf if none): across the tangent plane of the nearest sample inside a face, straight to a
+    sample on its rim. Compiled: placing the joints of 1024 pieces measures ~8k point sets, which numpy spent ~5 s on
+    (the serial joint stage)."""
     n, f, m = p.shape[0], x.shape[0], x.shape[1]
     out = np.full(n, np.inf)
     for i in range(n):
         for g in range(f):
+            if not use[g]:
+                continue
             best, near = np.inf, 0
             for s in range(m):
                 d0, d1, d2 = p[i, 0] - x[g, s, 0], p[i, 1] - x[g, s, 1], p[i, 2] - x[g, s, 2]

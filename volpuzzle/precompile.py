@@ -21,7 +21,7 @@ from pathlib import Path
 # (module, kernel, signature) in the order a build first calls them
 KERNELS = (
     ("volpuzzle._joint_kernels", "face_distance",
-     "(float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], boolean[:, ::1])"),
+     "(float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], boolean[:, ::1], boolean[::1])"),
     ("volpuzzle._joint_kernels", "cylinders_apart",
      "(float64[:, ::1], float64[:, ::1], float64, float64[:, ::1], float64[:, ::1], float64[::1], float64)"),
     ("volpuzzle.label", "_refined",
