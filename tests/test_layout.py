@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 from helpers_build import write_spec
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 import volpuzzle
@@ -235,6 +237,25 @@ def test_overflowing_parts_fill_few_plates_inside_and_apart():
         assert gap.min() >= spacing - 1e-9
     trimesh_once = plates_with(lambda e, p, s: packing.rectangles(e, size=p, spacing=s / 2, rotate=True, iterations=1))
     assert len(placed) <= len(trimesh_once)
+
+
+@settings(max_examples=200, deadline=None)
+@given(rects=st.lists(st.tuples(st.floats(0.0, 100.0), st.floats(0.0, 100.0)), min_size=0, max_size=12),
+       part=st.tuples(st.floats(0.0, 110.0), st.floats(0.0, 110.0)))
+def test_a_part_fits_the_packers_frontier_exactly_when_it_fits_a_free_rectangle(rects, part):
+    # the packer skips a part that fits none of its frontier (_frontier) without measuring it: that must be exactly
+    # the parts that fit no free rectangle either way round. Sides from a coarse grid, so that ties occur
+    from volpuzzle.layout import _frontier
+
+    rects = [(round(w / 5) * 5.0, round(h / 5) * 5.0) for w, h in rects]
+    a, b = round(part[0] / 5) * 5.0, round(part[1] / 5) * 5.0
+    free = np.array([(0.0, 0.0, w, h) for w, h in rects]).reshape(-1, 4)
+    fits = any((w >= a and h >= b) or (w >= b and h >= a) for w, h in rects)
+    frontier = _frontier(free, len(rects))
+    assert fits == any(r1 >= min(a, b) and r2 >= max(a, b) for r1, r2 in frontier)
+    # and the frontier is a few of the rectangles themselves, none beaten on both sides by another
+    assert all((r1, r2) in {(min(w, h), max(w, h)) for w, h in rects} for r1, r2 in frontier)
+    assert not any(p != q and q[0] >= p[0] and q[1] >= p[1] for p in frontier for q in frontier)
 
 
 def test_step_pictures_show_the_pieces_in_place_grey_and_the_block_added_in_its_colour(tmp_path):
