@@ -60,6 +60,26 @@ def test_moved_piece_overlaps_its_neighbour():
         assert_passed(checks)
 
 
+def test_a_piece_the_engine_cannot_make_a_solid_of_is_named_once_and_its_pairs_not_measured(monkeypatch):
+    # p0-0-0 is moved into two neighbours (two pairs to measure); the engine refuses p1-0-0's solid: it is named once,
+    # its pair is left unmeasured, and the other pair is still measured
+    import volpuzzle.check as C
+
+    pieces = split_box()
+    moved = pieces[0][1].copy()
+    moved.apply_translation([1.0, 1.0, 0])
+    pieces[0] = (pieces[0][0], moved)
+    plain = check_pieces(pieces, 8000.0)
+    real = C.piece_solid
+    monkeypatch.setattr(C, "piece_solid", lambda mesh, pid: "piece p1-0-0: refused" if pid == "p1-0-0"
+                        else real(mesh, pid))
+    checks = check_pieces(pieces, 8000.0)
+    assert [f for f in checks["failures"] if "not measured" in f] == [
+        "piece p1-0-0: refused; its overlaps were not measured"]
+    assert checks["overlap_pairs_tested"] == plain["overlap_pairs_tested"] - 1
+    assert checks["max_overlap_pair"] == ["p0-0-0", "p0-1-0"] and not checks["passed"]
+
+
 @settings(max_examples=8, deadline=None)
 @given(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
 def test_shifted_overlap_is_within_its_bound(dx, dy):
@@ -351,7 +371,8 @@ def test_pairs_whose_parts_lie_apart_need_no_boolean(monkeypatch, exact):
     measured = C._overlaps(shared, [(0, 1), (0, 2)])
     solids = [C.piece_solid(m, f"p{k}") for k, m in meshes.items()]
     booleans = (lambda a, b: (C.overlap_volume(a, b), 0.0)) if exact else (lambda a, b: C.shifted_overlap(a, b, 0.01))
-    assert measured == [booleans(solids[0], solids[1]), booleans(solids[0], solids[2])]
+    assert [m[:2] for m in measured] == [booleans(solids[0], solids[1]), booleans(solids[0], solids[2])]
+    assert [m[2] for m in measured] == [(None, None)] * 2  # the engine made every solid
     assert measured[0][0] == 0.0 and measured[1][0] == pytest.approx(48.0, abs=0.1)
     calls = []
     real = C.overlap_volume

@@ -641,24 +641,41 @@ def parts_apart(ea, eb, shift=None, margin=0.0) -> bool:
     return bool(apart.any(axis=2).all())
 
 
+class _Solids(dict):
+    """{piece id: Manifold}, each made on first use (_as_manifold, shared through check.piece_solid): the sweeps ask
+    for Booleans only where the boxes, the parts' extents and the surfaces leave a doubt, and at 1024 pieces none
+    did, so building every piece's solid up front was ~2 s of this process for nothing."""
+
+    def __init__(self, meshes):
+        super().__init__()
+        self._meshes = meshes
+
+    def __missing__(self, pid):
+        solid = self[pid] = _as_manifold(self._meshes[pid], pid)
+        return solid
+
+
 class _Scene:
-    """Pieces as manifolds with their vertices, faces, boxes and volumes; counts the Booleans. apart: check.pairs_apart
-    of the pieces, {frozenset of two ids: mm their surfaces stand apart at least}."""
+    """Pieces with their vertices, faces, boxes, volumes (of their meshes) and manifolds (made when a Boolean needs
+    them); counts the Booleans. apart: check.pairs_apart of the pieces, {frozenset of two ids: mm their surfaces stand
+    apart at least}."""
 
     def __init__(self, pieces, apart=None, kernel=False):
         self.apart = dict(apart or {})
         self.kernel = kernel  # whether _check_kernels.surfaces_meet spares Booleans (_unmet)
+        from .check import signed_volume
+
         self.ids = sorted(pieces)
-        self.man, self.verts, self.faces, self.box, self.vol, self._meshes = {}, {}, {}, {}, {}, {}
+        self.verts, self.faces, self.box, self.vol, self._meshes = {}, {}, {}, {}, {}
         self._extents = {}
         for pid in self.ids:
             mesh = pieces[pid]
             mesh = getattr(mesh, "mesh", mesh)
             self._meshes[pid] = mesh
-            self.man[pid] = _as_manifold(mesh, pid)
             self.verts[pid], self.faces[pid] = kernel_arrays(mesh)
             self.box[pid] = np.array([self.verts[pid].min(axis=0), self.verts[pid].max(axis=0)])
-            self.vol[pid] = float(self.man[pid].volume())
+            self.vol[pid] = abs(signed_volume(self.verts[pid], self.faces[pid]))
+        self.man = _Solids(self._meshes)
         self.booleans = 0
 
     def extents(self, pid):
