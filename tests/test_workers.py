@@ -168,6 +168,24 @@ def test_a_worker_keeps_one_mesh_and_its_solid_per_content_across_stages(pool, m
     assert back[0][0].mesh is not back[1][0].mesh
 
 
+def test_printable_pieces_from_the_workers_come_with_their_hull_points_for_the_layout(pool, monkeypatch):
+    # the workers find each printable mesh's hull points where they make it; the layout then uses them as they are,
+    # and they are the ones this process would find
+    from volpuzzle import export, geometry
+    from volpuzzle.compose.piece import Piece
+
+    monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
+    boxes = [trimesh.creation.icosphere(subdivisions=2, radius=3.0 + k).apply_translation([10.0 * k, 0.0, 0.0])
+             for k in range(3)]
+    pieces = [Piece(f"p{k}-0-0", (k, 0, 0), b, float(b.volume), float(b.volume), len(b.faces))
+              for k, b in enumerate(boxes)]
+    out = export.printable(pieces, workers=pool)
+    fresh = [geometry._hull_points(p.mesh) for p in out]
+    monkeypatch.setattr(geometry, "_hull_points", lambda _mesh: pytest.fail("the hull points were found again"))
+    for p, want in zip(out, fresh, strict=True):
+        assert np.array_equal(geometry.hull_points_of(p.mesh), want) and len(want) > 12
+
+
 def test_an_error_in_a_worker_keeps_its_kind_and_message(pool, monkeypatch):
     monkeypatch.setattr(W, "_MAIN_TAKES_ITEMS", False)
     with pytest.raises(SpecError, match=r"^grid: item three is refused \(got 3, expected anything else\)$"):

@@ -284,7 +284,12 @@ def hull_points_of(mesh):
     """The vertices (k, 3) of trimesh's convex_hull of the mesh, in its order (qhull's, same options, by index),
     without building the hull's mesh, which costs a third more than qhull itself and is not needed where only the
     extreme points are (plates are packed, and cages fitted, on them). A point set qhull refuses goes to trimesh's
-    own retry, and one that also refuses (flat, tiny) gives all its vertices."""
+    own retry, and one that also refuses (flat, tiny) gives all its vertices. Made once per mesh (memo): the pieces'
+    are made where their printable meshes are, by the workers too (export.printable), for the plates' layout."""
+    return memo(mesh, "hull_points", lambda: _hull_points(mesh))
+
+
+def _hull_points(mesh):
     from scipy.spatial import ConvexHull, QhullError
 
     points = mesh.vertices.view(np.ndarray)
