@@ -661,10 +661,10 @@ class _Scene:
     apart at least}."""
 
     def __init__(self, pieces, apart=None, kernel=False):
-        self.apart = dict(apart or {})
-        self.kernel = kernel  # whether _check_kernels.surfaces_meet spares Booleans (_unmet)
         from .check import signed_volume
 
+        self.apart = dict(apart or {})
+        self.kernel = kernel  # whether _check_kernels.surfaces_meet spares Booleans (_unmet)
         self.ids = sorted(pieces)
         self.verts, self.faces, self.box, self.vol, self._meshes = {}, {}, {}, {}, {}
         self._extents = {}
