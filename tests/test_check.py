@@ -69,7 +69,7 @@ def test_a_piece_the_engine_cannot_make_a_solid_of_is_named_once_and_its_pairs_n
     moved = pieces[0][1].copy()
     moved.apply_translation([1.0, 1.0, 0])
     pieces[0] = (pieces[0][0], moved)
-    plain = check_pieces(pieces, 8000.0)
+    plain = check_pieces([(pid, mesh.copy()) for pid, mesh in pieces], 8000.0)
     real = C.piece_solid
     monkeypatch.setattr(C, "piece_solid", lambda mesh, pid: "piece p1-0-0: refused" if pid == "p1-0-0"
                         else real(mesh, pid))
@@ -78,6 +78,11 @@ def test_a_piece_the_engine_cannot_make_a_solid_of_is_named_once_and_its_pairs_n
         "piece p1-0-0: refused; its overlaps were not measured"]
     assert checks["overlap_pairs_tested"] == plain["overlap_pairs_tested"] - 1
     assert checks["max_overlap_pair"] == ["p0-0-0", "p0-1-0"] and not checks["passed"]
+    # what the overlap check found of each piece's solid is remembered: the joint check asks it without a solid
+    monkeypatch.setattr(C, "piece_solid", lambda _mesh, pid: pytest.fail(f"{pid}'s solid was made again"))
+    measured = {"p0-0-0", "p1-0-0", "p0-1-0", "p1-1-0"}
+    assert {pid: C.solid_problem(mesh, pid) for pid, mesh in pieces if pid in measured} == {
+        "p0-0-0": None, "p1-0-0": "piece p1-0-0: refused", "p0-1-0": None, "p1-1-0": None}
 
 
 @settings(max_examples=8, deadline=None)

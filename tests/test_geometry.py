@@ -206,3 +206,27 @@ def test_unique_pairs_are_numpys_unique_rows(rows):
     got, counts = G.unique_pairs(e)
     want, want_counts = np.unique(e, axis=0, return_counts=True)
     assert np.array_equal(got, want.reshape(-1, 2)) and np.array_equal(counts, want_counts)
+
+
+@settings(max_examples=40, deadline=None)
+@given(shape=st.sampled_from(["ball", "ring", "torus"]), seed=st.integers(0, 2**16), above=st.floats(0.05, 0.95))
+def test_a_section_area_is_the_engines_slice_of_the_same_solid(shape, seed, above):
+    # turned any way and cut anywhere through it, with a hole (ring) or two separate islands (a torus cut near its
+    # top): the segments' sum is the engine's section area
+    mesh = {"ball": lambda: trimesh.creation.icosphere(subdivisions=3, radius=7.0),
+            "ring": lambda: trimesh.creation.annulus(r_min=3.0, r_max=6.0, height=4.0, sections=48),
+            "torus": lambda: trimesh.creation.torus(major_radius=8.0, minor_radius=2.5)}[shape]()
+    rot = trimesh.transformations.random_rotation_matrix(np.random.default_rng(seed).uniform(size=3))
+    v = mesh.vertices @ rot[:3, :3].T
+    h = float(v[:, 2].min() + above * np.ptp(v[:, 2]))
+    want = G.manifold_from_mesh(v, mesh.faces, shape, keep_faces=False).slice(h).area()
+    assert G.section_area(v, mesh.faces, h) == pytest.approx(want, rel=1e-6, abs=1e-9)
+
+
+def test_a_section_through_vertices_counts_them_above_the_plane():
+    # a box cut exactly at its top face: the side triangles reach the plane and hold the whole face; a plane past the
+    # solid cuts nothing
+    box = trimesh.creation.box([4.0, 3.0, 2.0])
+    assert G.section_area(box.vertices, box.faces, 1.0) == pytest.approx(12.0, rel=1e-12)
+    assert G.section_area(box.vertices, box.faces, 0.0) == pytest.approx(12.0, rel=1e-12)
+    assert G.section_area(box.vertices, box.faces, 1.5) == 0.0 == G.section_area(box.vertices, box.faces, -1.5)

@@ -188,7 +188,7 @@ def test_a_piece_without_a_flat_face_gets_a_base_cut_that_holds_it():
     assert np.all(placed.triangles_center[flat][:, 2] < lowest + 1e-6)
 
 
-def test_bed_contact_from_the_pieces_own_solid_is_that_of_the_placed_mesh():
+def test_bed_contact_of_a_piece_placed_by_a_transform_is_that_of_the_placed_mesh():
     from volpuzzle.check import piece_bed_contact
     from volpuzzle.layout import bed_contact
 
@@ -198,11 +198,11 @@ def test_bed_contact_from_the_pieces_own_solid_is_that_of_the_placed_mesh():
     placed = box.copy().apply_transform(tilt)
     want = bed_contact(placed.vertices, placed.faces)
     assert 0 < want < 20 * 12 - 1  # a strip along the low edge, not the whole face
-    got = piece_bed_contact(box, tilt, "box")
+    got = piece_bed_contact(box, tilt)
     assert got == pytest.approx(want, rel=1e-9)
-    assert piece_bed_contact(box, tilt, "box") == got
+    assert piece_bed_contact(box, tilt) == got
     flat = np.eye(4)
-    assert piece_bed_contact(box, flat, "box") == pytest.approx(20 * 12, rel=1e-9)  # another placement, measured
+    assert piece_bed_contact(box, flat) == pytest.approx(20 * 12, rel=1e-9)  # another placement, measured
 
 
 def test_a_small_round_piece_gets_a_deeper_cut_rather_than_too_little_bed():

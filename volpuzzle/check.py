@@ -110,6 +110,16 @@ def piece_solid(mesh: trimesh.Trimesh, pid: str):
     return _memo(mesh, "solid", make)
 
 
+def solid_problem(mesh: trimesh.Trimesh, pid: str):
+    """piece_solid's complaint about the mesh, or None when the engine makes its solid; remembered per mesh, also as
+    found by another process (check_pieces), so that asking needs no solid here."""
+    def make():
+        solid = piece_solid(mesh, pid)
+        return solid if isinstance(solid, str) else None
+
+    return _memo(mesh, "solid problem", make)
+
+
 def overlap_volume(a, b) -> float:
     """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
     inter = a ^ b
@@ -237,9 +247,11 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
         named = set()
         for (a, b), (v, bound, problems) in zip(measured, [r for chunk in found for r in chunk], strict=True):
             for k, problem in zip((a, b), problems, strict=True):
-                if problem is not None and k not in named:  # each piece once, where its first pair names it
+                if k not in named:  # each piece once, where its first pair names it
                     named.add(k)
-                    failures.append(f"{problem}; its overlaps were not measured")
+                    _memo(meshes[good[k]], "solid problem", lambda problem=problem: problem)  # check_joints asks
+                    if problem is not None:
+                        failures.append(f"{problem}; its overlaps were not measured")
             if v is None:
                 continue
             max_bound = max(max_bound, bound)
@@ -567,7 +579,7 @@ def check_joints(meshes: dict, joints: Sequence[dict], share: float = 0.02, work
 
     tested = [(k, j) for k, j in enumerate(joints) if j.get("pin_piece") in meshes and j.get("hole_piece") in meshes]
     used = {j[key] for _, j in tested for key in ("pin_piece", "hole_piece")}
-    broken = {pid for pid in used if isinstance(piece_solid(meshes[pid], pid), str)}  # check_pieces says why
+    broken = {pid for pid in used if solid_problem(meshes[pid], pid)}  # check_pieces says why
     tests = {}  # piece id -> [(joint index, test of that joint, kind, cylinders)], in joint order
     for k, j in tested:
         if j["pin_piece"] not in broken and j["hole_piece"] not in broken:
@@ -874,18 +886,13 @@ def fit_line(fit):
     return line
 
 
-def piece_bed_contact(mesh, transform, pid="piece"):
-    """layout.bed_contact of a piece mesh placed by transform (4, 4), from its piece_solid; remembered per mesh and
-    transform, since the build's report entry and its printability check measure the very same placement."""
+def piece_bed_contact(mesh, transform):
+    """layout.bed_contact of a piece mesh placed by transform (4, 4); remembered per mesh and transform, since the
+    build's report entry and its printability check measure the very same placement."""
     from .layout import bed_contact
 
     transform = np.asarray(transform, float)
-
-    def make():
-        solid = piece_solid(mesh, pid)
-        return bed_contact(mesh.vertices, mesh.faces, transform, solid=None if isinstance(solid, str) else solid)
-
-    return _memo(mesh, ("bed_contact", transform.tobytes()), make)
+    return _memo(mesh, ("bed_contact", transform.tobytes()), lambda: bed_contact(mesh.vertices, mesh.faces, transform))
 
 
 def bed_contact_problem(under) -> str:
@@ -911,7 +918,7 @@ def check_printability(report: dict, meshes: dict, workers=None, gaps=None) -> d
             warnings.append(f"piece {pid}: report.json gives no print orientation; its bed contact was not checked")
             continue
         try:
-            contact[pid] = round(piece_bed_contact(mesh, transform, pid), 2)
+            contact[pid] = round(piece_bed_contact(mesh, transform), 2)
         except GeometryError as e:
             failures.append(f"piece {pid}: bed contact not measured ({e})")
             continue

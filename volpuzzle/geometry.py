@@ -280,6 +280,34 @@ def trim(m, normal, offset, what):
                         "trimming by a plane")
 
 
+def section_area(vertices, faces, height):
+    """mm^2 of the section of a closed, outward-wound triangle mesh (vertices (n, 3), faces (m, 3)) by the plane
+    z = height. Green's theorem over the segments where triangles cross the plane: in a triangle's own vertex order,
+    the segment runs from the edge that goes down through the plane to the edge that comes back up, which leaves the
+    solid's section on its left, so the segments need no tracing into loops and holes subtract themselves. A vertex
+    on the plane counts as above it; an edge's crossing is computed from its lower end, the same point for both of
+    its triangles."""
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    above = (v[:, 2] >= height)[f]
+    f, above = f[above.any(axis=1) & ~above.all(axis=1)], above[above.any(axis=1) & ~above.all(axis=1)]
+    if not len(f):
+        return 0.0
+    start, stop = f, np.roll(f, -1, axis=1)  # edge k runs from corner k to corner k + 1
+    a_start, a_stop = above, np.roll(above, -1, axis=1)
+    rows = np.arange(len(f))
+
+    def crossing(k):
+        lo = np.where(a_start[rows, k], stop[rows, k], start[rows, k])  # the edge's end below the plane
+        hi = np.where(a_start[rows, k], start[rows, k], stop[rows, k])
+        t = (height - v[lo, 2]) / (v[hi, 2] - v[lo, 2])
+        return v[lo, :2] + t[:, None] * (v[hi, :2] - v[lo, :2])
+
+    down = crossing(np.argmax(a_start & ~a_stop, axis=1))
+    up = crossing(np.argmax(~a_start & a_stop, axis=1))
+    return float(0.5 * np.sum(down[:, 0] * up[:, 1] - up[:, 0] * down[:, 1]))
+
+
 def hull_points_of(mesh):
     """The vertices (k, 3) of trimesh's convex_hull of the mesh, in its order (qhull's, same options, by index),
     without building the hull's mesh, which costs a third more than qhull itself and is not needed where only the
