@@ -381,6 +381,24 @@ def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
     assert upright["failures"] == [] and upright["min_bed_contact_mm2"] > 300
 
 
+def test_check_from_files_names_a_piece_whose_bed_contact_cannot_be_measured():
+    # a placement that is not a number (a hand-edited report) or a file without triangles: said, never passed
+    from volpuzzle.check import check_printability
+
+    box = trimesh.creation.box([10, 10, 10])
+    broken = np.eye(4)
+    broken[0, 3] = np.nan
+    report = {"spec": {"output": {"face_clearance": 0.0}},
+              "pieces": [{"id": "p0", "print": {"plate_transform": broken.tolist()}, "label": {"text": "p0"}},
+                         {"id": "p1", "print": {"plate_transform": np.eye(4).tolist()}, "label": {"text": "p1"}}]}
+    result = check_printability(report, {"p0": box, "p1": trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))})
+    assert result["failures"] == [
+        "piece p0: bed contact not measured (piece on the bed: the mesh has non-finite vertex coordinates)",
+        "piece p1: bed contact not measured (piece on the bed: the mesh encloses no volume (empty solid from 0 "
+        "triangles))"]
+    assert result["bed_contact_mm2"] == {}
+
+
 def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():
     from volpuzzle.geometry import from_trimesh
     from volpuzzle.label import DEPTH_MM, engrave_bed

@@ -21,7 +21,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 from trimesh.path import packing
 
-from .errors import SpecError
+from .errors import GeometryError, SpecError
 from .geometry import hull_points_of
 
 # Faces within this angle of the plate count as resting on it; faces steeper than 45 degrees down overhang.
@@ -191,12 +191,17 @@ def print_orientation(mesh, pin_directions=(), hole_openings=()):
 def bed_contact(vertices, faces, transform=None):
     """mm^2 of the mesh on the bed after `transform` (4, 4): its section FIRST_SLICE_MM above its lowest point, where
     the slicer cuts the first layer (geometry.section_area: the engine's slice needed the piece's solid, ~2 ms a
-    piece to build, where the section itself takes a tenth of that)."""
+    piece to build, where the section itself takes a tenth of that). GeometryError, as the engine gave, for a mesh
+    without triangles or with non-finite coordinates once placed (a broken file or transform)."""
     from .geometry import section_area
 
     v = np.asarray(vertices, float)
     if transform is not None:
         v = v @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
+    if not len(faces):
+        raise GeometryError("piece on the bed: the mesh encloses no volume (empty solid from 0 triangles)")
+    if not np.all(np.isfinite(v)):
+        raise GeometryError("piece on the bed: the mesh has non-finite vertex coordinates")
     return section_area(v, faces, float(v[:, 2].min()) + FIRST_SLICE_MM)
 
 
