@@ -120,6 +120,11 @@ def solid_problem(mesh: trimesh.Trimesh, pid: str):
     return _memo(mesh, "solid problem", make)
 
 
+def remember_solid_problem(mesh: trimesh.Trimesh, problem) -> None:
+    """solid_problem(mesh) as already found (in a worker, for a copy of the same arrays): the joint check asks."""
+    _memo(mesh, "solid problem", lambda: problem)
+
+
 def overlap_volume(a, b) -> float:
     """Volume common to two manifold3d.Manifolds (0 for solids that only touch)."""
     inter = a ^ b
@@ -249,7 +254,7 @@ def check_pieces(pieces: Sequence[tuple[str, trimesh.Trimesh]], expected_volume_
             for k, problem in zip((a, b), problems, strict=True):
                 if k not in named:  # each piece once, where its first pair names it
                     named.add(k)
-                    _memo(meshes[good[k]], "solid problem", lambda problem=problem: problem)  # check_joints asks
+                    remember_solid_problem(meshes[good[k]], problem)
                     if problem is not None:
                         failures.append(f"{problem}; its overlaps were not measured")
             if v is None:

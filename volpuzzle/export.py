@@ -744,7 +744,7 @@ def printable(pieces, workers=None):
 
     from .check import remember_closed
     from .errors import GeometryError
-    from .geometry import memo
+    from .geometry import remember_hull_points
     from .workers import MeshRef, map_pieces
 
     items = [MeshRef(p.mesh) for p in pieces]
@@ -755,7 +755,7 @@ def printable(pieces, workers=None):
             raise GeometryError(_printable_problem(p, problem))
         remember_closed(ref.mesh, problem)  # the checks ask again of this very mesh
         # and the plates' layout asks for its hull: at 1024 pieces ~0.7 s of this process alone, there
-        memo(ref.mesh, "hull_points", lambda hull=hull: hull)
+        remember_hull_points(ref.mesh, hull)
         out.append(dataclasses.replace(p, mesh=ref.mesh, volume=volume, triangles=int(len(ref.mesh.faces))))
     return out
 

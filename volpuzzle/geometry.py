@@ -290,7 +290,8 @@ def section_area(vertices, faces, height):
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     above = (v[:, 2] >= height)[f]
-    f, above = f[above.any(axis=1) & ~above.all(axis=1)], above[above.any(axis=1) & ~above.all(axis=1)]
+    crossing_plane = above.any(axis=1) & ~above.all(axis=1)
+    f, above = f[crossing_plane], above[crossing_plane]
     if not len(f):
         return 0.0
     start, stop = f, np.roll(f, -1, axis=1)  # edge k runs from corner k to corner k + 1
@@ -315,6 +316,11 @@ def hull_points_of(mesh):
     own retry, and one that also refuses (flat, tiny) gives all its vertices. Made once per mesh (memo): the pieces'
     are made where their printable meshes are, by the workers too (export.printable), for the plates' layout."""
     return memo(mesh, "hull_points", lambda: _hull_points(mesh))
+
+
+def remember_hull_points(mesh, points):
+    """hull_points_of(mesh) as already found (in a worker, for a copy of the same arrays): points (k, 3)."""
+    memo(mesh, "hull_points", lambda: points)
 
 
 def _hull_points(mesh):
