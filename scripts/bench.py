@@ -6,7 +6,9 @@
   4x4x64 is refused as crowded (87 pieces, slabs about 5 mm thick along w, find no spot for a pin that keeps clear
   of their other joints, even with joints.radius 1), and 8x8x16 cells (about 4 mm across) hold no 1 mm pin, so the
   1024-piece figures need --torus-size 300 (all sizes then at 300 mm, more triangles per piece);
-- the 32-piece target at the default --jobs, as a user builds it (the series above runs at --torus-jobs);
+- the 32-piece target at the default --jobs, as a user builds it (the series above runs at --torus-jobs), and its
+  floor: the time before the first stage plus --jobs 1's stage CPU seconds spread over every core with none idle,
+  the least any split of that work could take (the bunny-cage gets the same floor against its baseline);
 - the 1024-piece target itself: both grids the issue names (4x4x64 and 8x8x16) at the default --jobs, as a user
   builds them (--without-labels: 8x8x16 once more with output.labels false, to show what the ids cost);
 - --jobs 1 against --jobs 2 on the 256-piece build, and the most any split could gain: --jobs 1 already keeps more
@@ -182,6 +184,24 @@ def show_joints(fig):
         ratio = fig["largest_volume_mm3"] / max(fig["smallest_volume_mm3"], 1e-12)
         line += f"; largest/smallest piece {ratio:.1f}"
     print(line)
+
+
+def usable_cores():
+    """The cores the builds may use (volpuzzle.workers.usable_cores)."""
+    sys.path.insert(0, str(REPO))
+    from volpuzzle.workers import usable_cores as cores
+
+    return cores()
+
+
+def work_floor(r, cores):
+    """The least wall (s) the work of run r could take on `cores` cores -> (floor, s before its first stage): the
+    time before the first stage (the interpreter's imports, the spec), then every stage's CPU seconds spread over every
+    core with none idle and no cost of its own for the spread (no worker's start-up, nothing sent). r is best a
+    --jobs 1 run, whose stage CPU is the build's work alone: a target below this floor cannot be met by sharing the
+    work better, only by doing less of it."""
+    before = max(0.0, r["wall"] - sum(r["stages"].values()))
+    return before + sum(r["stages_cpu"].values()) / cores, before
 
 
 def stage_table(results):
@@ -371,6 +391,12 @@ def main():
         if 32 in sizes:  # the warm 32-piece target, as a user builds it (the table above is at --torus-jobs)
             r = run_median(torus(GRIDS[32]), args.repeat, jobs=0)
             show(f"32-piece target (<= 3 s warm), twisted torus 2x2x8{size_note}, default --jobs", r)
+            one = results.get(32, {"error": 1})
+            if args.torus_jobs == 1 and "error" not in one:
+                cores = usable_cores()
+                least, before = work_floor(one, cores)
+                print(f"  floor: {least:.1f} s on {cores} cores ({before:.1f} s before the first stage, then --jobs "
+                      f"1's {sum(one['stages_cpu'].values()):.1f} stage CPU s with every core busy)")
         if 1024 in sizes:
             target_1024(torus, args, size_note)
         two = ({"error": "not run"} if args.no_torus or 256 not in sizes
@@ -384,9 +410,6 @@ def main():
             # --jobs 1 is already parallel in part (manifold's and numba's thread pools): the same CPU seconds
             # spread over every core bound what a second process can gain
             busy = (one["cpu"] + one["cpu_children"]) / one["wall"]
-            sys.path.insert(0, str(REPO))
-            from volpuzzle.workers import usable_cores
-
             cores = usable_cores()
             print(f"  --jobs 1 kept {busy:.2f} cores busy on average (its engines' threads), so on {cores} cores no "
                   f"split of its {one['cpu'] + one['cpu_children']:.1f} CPU s can be more than {cores / busy:.2f}x "
@@ -432,6 +455,11 @@ def main():
                     f"{k} {v:.2f}/{bunny['stages_cpu'].get(k, 0.0):.2f}" for k, v in bunny["stages"].items()))
                 print(f"  stages the baseline has no counterpart for ({', '.join(extra)}): "
                       f"{sum(bunny['stages_cpu'].get(k, 0.0) for k in extra):.2f} CPU s")
+                cores = usable_cores()
+                least, before = work_floor(bunny, cores)
+                print(f"  floor: {least:.1f} s on {cores} cores, {least / wall:.1f}x the baseline ({before:.1f} s "
+                      f"before the first stage, then its {sum(bunny['stages_cpu'].values()):.1f} stage CPU s with "
+                      f"every core busy)")
         if args.large_mesh:
             bench_large_mesh(tmp)
     print(f"machine probe {machine_probe():.3f} s at the end")
