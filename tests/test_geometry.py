@@ -223,10 +223,25 @@ def test_a_section_area_is_the_engines_slice_of_the_same_solid(shape, seed, abov
     assert G.section_area(v, mesh.faces, h) == pytest.approx(want, rel=1e-6, abs=1e-9)
 
 
-def test_a_section_through_vertices_counts_them_above_the_plane():
-    # a box cut exactly at its top face: the side triangles reach the plane and hold the whole face; a plane past the
-    # solid cuts nothing
-    box = trimesh.creation.box([4.0, 3.0, 2.0])
-    assert G.section_area(box.vertices, box.faces, 1.0) == pytest.approx(12.0, rel=1e-12)
-    assert G.section_area(box.vertices, box.faces, 0.0) == pytest.approx(12.0, rel=1e-12)
-    assert G.section_area(box.vertices, box.faces, 1.5) == 0.0 == G.section_area(box.vertices, box.faces, -1.5)
+@pytest.mark.parametrize("parts, heights", [
+    ([([4.0, 3.0, 2.0], 0.0)], [-1.0, 0.0, 1.0, 1.5, -1.5]),  # a box cut at its bottom and top faces
+    ([([20.0, 20.0, 0.1], 0.05), ([10.0, 10.0, 5.0], 2.5)], [0.1, 0.0]),  # a slab under a post
+    ([([10.0, 10.0, 0.1], 0.05), ([20.0, 20.0, 4.9], 2.55)], [0.1, 0.0]),  # a foot under a block
+])
+def test_a_section_through_vertices_is_the_one_just_above_the_plane_as_the_engines(parts, heights):
+    # a face lying in the plane belongs to the part under it: the bed contact is measured FIRST_SLICE_MM above the
+    # lowest point, and a step exactly there must read as the engine's slice (and plan_pose's base cut) reads it.
+    # parts: boxes (extents, height of the centre), united
+    solid = None
+    for extents, z in parts:
+        box = trimesh.creation.box(extents)
+        part = G.manifold_from_mesh(box.vertices + [0.0, 0.0, z], box.faces, "box", keep_faces=False)
+        solid = part if solid is None else solid + part
+    mesh = G.to_trimesh(solid)
+    for h in heights:
+        want = solid.slice(h).area()
+        assert G.section_area(mesh.vertices, mesh.faces, h) == pytest.approx(want, rel=1e-12, abs=1e-12), h
+    if len(parts) == 2:  # the upper part's section, not the step's
+        assert G.section_area(mesh.vertices, mesh.faces, 0.1) == pytest.approx(parts[1][0][0] * parts[1][0][1])
+
+

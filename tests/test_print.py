@@ -382,21 +382,41 @@ def test_check_from_files_names_a_piece_on_a_point_and_a_thin_pin():
 
 
 def test_check_from_files_names_a_piece_whose_bed_contact_cannot_be_measured():
-    # a placement that is not a number (a hand-edited report) or a file without triangles: said, never passed
+    # a placement that is not a number (a hand-edited report), a file without triangles or one with a hole (whose
+    # section would be a number without meaning): said, never passed
     from volpuzzle.check import check_printability
 
     box = trimesh.creation.box([10, 10, 10])
     broken = np.eye(4)
     broken[0, 3] = np.nan
+    holed = trimesh.Trimesh(box.vertices, box.faces[1:], process=False)
     report = {"spec": {"output": {"face_clearance": 0.0}},
-              "pieces": [{"id": "p0", "print": {"plate_transform": broken.tolist()}, "label": {"text": "p0"}},
-                         {"id": "p1", "print": {"plate_transform": np.eye(4).tolist()}, "label": {"text": "p1"}}]}
-    result = check_printability(report, {"p0": box, "p1": trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))})
+              "pieces": [{"id": f"p{k}", "print": {"plate_transform": (broken if k == 0 else np.eye(4)).tolist()},
+                          "label": {"text": f"p{k}"}} for k in range(3)]}
+    result = check_printability(report, {"p0": box, "p1": trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)),
+                                         "p2": holed})
     assert result["failures"] == [
         "piece p0: bed contact not measured (piece on the bed: the mesh has non-finite vertex coordinates)",
         "piece p1: bed contact not measured (piece on the bed: the mesh encloses no volume (empty solid from 0 "
-        "triangles))"]
+        "triangles))",
+        "piece p2: bed contact not measured (piece on the bed: the mesh is not a closed solid: not watertight (3 open "
+        "edges))"]
     assert result["bed_contact_mm2"] == {}
+
+
+def test_a_mirroring_placement_rests_on_the_same_area_as_its_mirror_image():
+    # a hand-edited report may mirror a piece (determinant -1): its triangles then face inwards, and the section's
+    # sign must not turn a good contact into a negative one
+    from volpuzzle.check import check_printability, piece_bed_contact
+
+    box = trimesh.creation.box([10, 12, 10])
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    mirror[2, 3] = 5.0
+    assert piece_bed_contact(box, mirror) == pytest.approx(120.0, rel=1e-12)
+    report = {"spec": {"output": {"face_clearance": 0.0}},
+              "pieces": [{"id": "p0", "print": {"plate_transform": mirror.tolist()}, "label": {"text": "p0"}}]}
+    result = check_printability(report, {"p0": box})
+    assert result["bed_contact_mm2"] == {"p0": 120.0} and not result["failures"]
 
 
 def test_a_label_with_no_inner_face_goes_mirrored_on_the_bed_side():

@@ -893,11 +893,20 @@ def fit_line(fit):
 
 def piece_bed_contact(mesh, transform):
     """layout.bed_contact of a piece mesh placed by transform (4, 4); remembered per mesh and transform, since the
-    build's report entry and its printability check measure the very same placement."""
+    build's report entry and its printability check measure the very same placement. GeometryError for a mesh that
+    is not a closed solid (closed_problem, which check_pieces has found already): its section would be a number
+    without meaning (an open box's is most of its face), where the engine's slice refused such a mesh."""
     from .layout import bed_contact
 
     transform = np.asarray(transform, float)
-    return _memo(mesh, ("bed_contact", transform.tobytes()), lambda: bed_contact(mesh.vertices, mesh.faces, transform))
+
+    def measure():
+        problem = closed_problem(mesh) if len(mesh.faces) else None  # none: bed_contact says what it says of that
+        if problem is not None:
+            raise GeometryError(f"piece on the bed: the mesh is not a closed solid: {problem}")
+        return bed_contact(mesh.vertices, mesh.faces, transform)
+
+    return _memo(mesh, ("bed_contact", transform.tobytes()), measure)
 
 
 def bed_contact_problem(under) -> str:

@@ -285,11 +285,13 @@ def section_area(vertices, faces, height):
     z = height. Green's theorem over the segments where triangles cross the plane: in a triangle's own vertex order,
     the segment runs from the edge that goes down through the plane to the edge that comes back up, which leaves the
     solid's section on its left, so the segments need no tracing into loops and holes subtract themselves. A vertex
-    on the plane counts as above it; an edge's crossing is computed from its lower end, the same point for both of
-    its triangles."""
+    on the plane counts as below it, so that the section is the one just above the plane, as the engine's slice
+    measures it: a face lying in the plane belongs to the part under it (a box cut at its bottom face has its whole
+    section, at its top none). An edge's crossing is computed from its lower end, the same point for both of its
+    triangles."""
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    above = (v[:, 2] >= height)[f]
+    above = (v[:, 2] > height)[f]
     crossing_plane = above.any(axis=1) & ~above.all(axis=1)
     f, above = f[crossing_plane], above[crossing_plane]
     if not len(f):
@@ -299,7 +301,7 @@ def section_area(vertices, faces, height):
     rows = np.arange(len(f))
 
     def crossing(k):
-        lo = np.where(a_start[rows, k], stop[rows, k], start[rows, k])  # the edge's end below the plane
+        lo = np.where(a_start[rows, k], stop[rows, k], start[rows, k])  # the edge's end below the plane (or on it)
         hi = np.where(a_start[rows, k], start[rows, k], stop[rows, k])
         t = (height - v[lo, 2]) / (v[hi, 2] - v[lo, 2])
         return v[lo, :2] + t[:, None] * (v[hi, :2] - v[lo, :2])

@@ -192,17 +192,22 @@ def bed_contact(vertices, faces, transform=None):
     """mm^2 of the mesh on the bed after `transform` (4, 4): its section FIRST_SLICE_MM above its lowest point, where
     the slicer cuts the first layer (geometry.section_area: the engine's slice needed the piece's solid, ~2 ms a
     piece to build, where the section itself takes a tenth of that). GeometryError, as the engine gave, for a mesh
-    without triangles or with non-finite coordinates once placed (a broken file or transform)."""
+    without triangles or with non-finite coordinates once placed (a broken file or transform). The mesh must be
+    closed and outward-wound (check.piece_bed_contact refuses one that is not); a mirroring transform turns its
+    triangles inside out, which the area's sign undoes."""
     from .geometry import section_area
 
     v = np.asarray(vertices, float)
+    sign = 1.0
     if transform is not None:
-        v = v @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
+        m = np.asarray(transform, float)
+        v = v @ m[:3, :3].T + m[:3, 3]
+        sign = -1.0 if np.linalg.det(m[:3, :3]) < 0 else 1.0
     if not len(faces):
         raise GeometryError("piece on the bed: the mesh encloses no volume (empty solid from 0 triangles)")
     if not np.all(np.isfinite(v)):
         raise GeometryError("piece on the bed: the mesh has non-finite vertex coordinates")
-    return section_area(v, faces, float(v[:, 2].min()) + FIRST_SLICE_MM)
+    return sign * section_area(v, faces, float(v[:, 2].min()) + FIRST_SLICE_MM)
 
 
 def plan_pose(mesh, pin_directions=(), hole_openings=(), down=None, pin_tips=()):
