@@ -2,6 +2,8 @@
 worker, errors keeping their kind and message, a dead worker as one GeometryError, no pool where it cannot pay or
 must not start, no wait at close; and a whole build byte-identical with --jobs 1 and --jobs 2."""
 
+import errno
+import functools
 import hashlib
 import json
 import multiprocessing
@@ -467,6 +469,45 @@ def test_plates_are_written_by_the_workers_from_the_first_and_on_the_3mf_thread_
         assert busy.result() == 2.0
     else:
         assert not here[plates[0]] and here[plates[-1]]
+
+
+def _write_slowly(path, flags, pause):
+    # a writer that makes its own folder (as one nested deeper could): begun, it would recreate a removed folder
+    path.parent.mkdir(parents=True, exist_ok=True)
+    (flags / "begun").touch()
+    time.sleep(pause)
+    path.write_text("late", encoding="utf-8")
+    (flags / "written").touch()
+
+
+def _full_disk_once_begun(flags, path):
+    deadline = time.monotonic() + 60
+    while not (flags / "begun").exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    raise OSError(errno.ENOSPC, "No space left on device", os.fspath(path))
+
+
+def test_a_failed_export_leaves_no_folder_behind_while_a_worker_still_writes_into_it(pool, tmp_path):
+    # the disk fills while a worker draws a picture into the temporary folder: the folder is removed only once that
+    # worker is done with it, so nothing is written into it afterwards and no half-written folder is left
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.errors import ExportError
+    from volpuzzle.export import write_build
+
+    flags = tmp_path / "flags"
+    flags.mkdir()
+    pieces = make_pieces()
+    extras = {"a.txt": W.Remote(_write_picture, "first", 0.0),
+              "steps/b.txt": W.Remote(_write_slowly, flags, 0.5),
+              "z.txt": functools.partial(_full_disk_once_begun, flags)}
+    with pytest.raises(ExportError, match="No space left on device"):
+        write_build(tmp_path / "c", pieces, make_report(pieces), extras=extras, workers=pool)
+    deadline = time.monotonic() + 60
+    while not (flags / "written").exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert (flags / "written").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flags"]
 
 
 @pytest.mark.parametrize("per_task", [1, 2])

@@ -616,6 +616,7 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
     # thread while this one writes the rest and paints the preview.
     worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="volpuzzle-3mf")
     pending = []
+    ahead = []  # (path in tmp, workers.Prefetch) of the extras begun in the workers
 
     def named(path, job, *args):
         try:
@@ -642,7 +643,6 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         # the assembly is known (layout.step_pictures_ahead)
         remote = sorted((rel for rel, w in (extras or {}).items() if workers is not None and isinstance(w, Remote)),
                         key=lambda rel: (rel.endswith(".3mf"), rel))
-        ahead = []
         for rel in remote[1:]:
             (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
             ahead.append((tmp / rel, workers.prefetch(extras[rel], tmp / rel)))
@@ -700,7 +700,10 @@ def write_build(target, pieces: Sequence, report: dict, fmt: str = "stl", force:
         stop.check()  # a stop that a library swallowed on the way must not leave a finished folder behind
         _move_into_place(tmp, target)
     except BaseException as e:
-        worker.shutdown(wait=True, cancel_futures=True)  # nothing may still write into tmp once it is removed
+        # nothing may still write into tmp once it is removed: neither the 3MF thread nor a worker process
+        worker.shutdown(wait=True, cancel_futures=True)
+        for _dest, job in ahead:
+            job.settle()
         shutil.rmtree(tmp, ignore_errors=True)
         if not isinstance(e, Exception):
             raise

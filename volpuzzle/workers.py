@@ -412,6 +412,16 @@ class Prefetch:
                 return value
         return self._fn(*self._args)
 
+    def settle(self) -> None:
+        """Make sure nothing of it runs after this returns, its result unwanted (a failed export removing the folder
+        it writes into): claimed here, no worker begins it; one that has begun is waited for, whatever it gives."""
+        if self._future is None or _claim(self._claim):
+            return
+        try:
+            self._future.result()
+        except Exception:  # noqa: BLE001 - its outcome is not wanted, only its end
+            pass
+
 
 _TASKS = 96  # tasks a stage's items are cut into (in_tasks), at most: ~30 per process of a 2-core build
 
