@@ -463,6 +463,31 @@ def test_a_ray_through_an_edge_gives_up():
     assert cylinder_side(v, f, np.array([9.0, 0.0, 0.0]), *frame_from_direction(aslant), 1.0, -1.0, 1.0, 1e-4) == -1
 
 
+@pytest.mark.parametrize("ulps", [0, 1, 3, 1000])
+def test_a_surface_crossing_the_cylinder_is_seen_when_a_corner_lies_on_the_slabs_bound(ulps):
+    # a tetrahedron whose face ABC crosses the pin's cylinder (z 0..1, radius 1) at z ~ 0.3, with corner B at (or a
+    # hair below) the slab's lower bound: clipping leaves an edge of no length there, which once made the polygon's
+    # inside test fail and the kernel place the cylinder inside, a test the engine finds 30% outside
+    from volpuzzle import check
+    from volpuzzle._check_kernels import cylinder_side
+    from volpuzzle.geometry import kernel_arrays
+
+    radius, start, stop = 1.0, 0.0, 1.0
+    margin = check._CLEAR_MARGIN + 1e-9 * 100.0  # as _left_to_measure gives it for a piece 100 mm across
+    lo = start - margin
+    zb = lo - ulps * np.spacing(lo)
+    corners = np.array([[-100, -100, -1.3999], [100, -100, zb], [0, 100, 1.3], [5, 3, 50.0]])
+    mesh = trimesh.Trimesh(corners, [[0, 1, 2], [0, 1, 3], [1, 2, 3], [2, 0, 3]], process=False)
+    trimesh.repair.fix_normals(mesh)
+    assert mesh.is_watertight and mesh.volume > 0
+    v, f = kernel_arrays(mesh)
+    frame = (np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    assert cylinder_side(v, f, np.zeros(3), *frame, radius, start, stop, margin) == 0
+    test = (0, 0, "inside", [((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), radius, start, stop)])
+    outside = check._measured("inside", check._test_shape(test[3]), check.piece_solid(mesh, "p"))
+    assert outside > 0.25 * np.pi * radius ** 2 * (stop - start)  # what the engine then measures, and fails
+
+
 def test_the_joint_check_keeps_to_the_engine_until_its_kernel_is_ready(monkeypatch):
     # compiling the kernel (~1.7 s) would cost a first build of a few pieces on a new machine more than it saves
     from volpuzzle import precompile

@@ -120,23 +120,29 @@ def _clip(src, dst, n, bound, sense):
 @njit(cache=True, nogil=True)
 def _distance_to_axis(poly, n):
     """Distance from the origin to the convex polygon poly[:n] seen along the axis (its (e1, e2) coordinates): 0 when
-    the origin is inside it, else the distance to its nearest edge (a degenerate polygon is its edges)."""
-    positive = negative = 0
+    the origin is inside it, else the distance to its nearest edge (a degenerate polygon is its edges).
+    Inside: on one side of every edge whose side is above its rounding. Clipping a corner that lies on the slab's
+    bound (or within rounding of it) leaves an edge of no length, or of a length whose side is noise; counted, it
+    called an origin inside the polygon outside, and then a surface crossing the cylinder was passed over. Leaving
+    such an edge out can only call inside an origin that is within rounding of the polygon: 0, the engine's case."""
+    positive = negative = counted = 0
     best = np.inf
     for i in range(n):
         j = (i + 1) % n
         ax, ay = poly[i, 1], poly[i, 2]
         dx, dy = poly[j, 1] - ax, poly[j, 2] - ay
         side = ax * dy - ay * dx  # the origin's side of edge i -> j, times its length
-        if side > 0.0:
-            positive += 1
-        elif side < 0.0:
-            negative += 1
+        if abs(side) > 1e-12 * (abs(ax) + abs(ay)) * (abs(dx) + abs(dy)):
+            counted += 1
+            if side > 0.0:
+                positive += 1
+            else:
+                negative += 1
         ll = dx * dx + dy * dy
         s = 0.0 if ll == 0.0 else min(1.0, max(0.0, -(ax * dx + ay * dy) / ll))
         px, py = ax + s * dx, ay + s * dy
         best = min(best, math.sqrt(px * px + py * py))
-    if positive == n or negative == n:
+    if counted > 0 and (positive == counted or negative == counted):
         return 0.0
     return best
 
