@@ -60,13 +60,26 @@ def _closed_problem(mesh):
         return f"not watertight ({len(edges)} open edges)" if len(edges) else "not watertight (non-manifold edges)"
     if not m.is_winding_consistent:
         return "inconsistent winding"
-    bodies = m.body_count
+    bodies = _bodies_across_edges(m)
     if bodies != 1:
-        return f"{bodies} separate bodies, expected 1"
+        # trimesh's body_count joins bodies at a shared vertex; the loader (io.mesh.mesh_problems) does not, and a
+        # piece of two parts that touch at a point prints as two parts
+        pinch = " that meet only at vertices (a pinch)" if m.body_count < bodies else ""
+        return f"{bodies} separate bodies{pinch}, expected 1"
     vol = signed_volume(m.vertices, m.faces)
     if not vol > 0:
         return f"volume {vol:.6g} mm^3 is not positive (normals point inwards)"
     return None
+
+
+def _bodies_across_edges(m) -> int:
+    """How many parts the triangles of the watertight mesh m fall into, joined across the edges they share."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = np.asarray(m.face_adjacency, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(m.faces),) * 2)
+    return int(connected_components(graph, directed=False)[0])
 
 
 def _plainly_closed(mesh) -> bool:
@@ -88,8 +101,11 @@ def _plainly_closed(mesh) -> bool:
     used[f.ravel()] = True
     if not used.all() or not np.all(np.isfinite(v)):
         return False
-    # the very rounding trimesh merges vertices by (tol.merge): no two vertices may share it
-    if len(trimesh.grouping.unique_rows(v, digits=trimesh.util.decimal_to_digits(trimesh.tol.merge))[0]) != n:
+    # the very rounding trimesh's merge_vertices uses (tol.merge, rounded as it rounds: unique_rows' own digits
+    # subtract 1e-6 first, and joined two vertices trimesh keeps apart, or kept apart two it joins): no two vertices
+    # may share it
+    keys = (v * 10 ** trimesh.util.decimal_to_digits(trimesh.tol.merge)).round().astype(np.int64)
+    if len(trimesh.grouping.unique_rows(keys)[0]) != n:
         return False
     # mesh_problems counts bodies across edges, stricter than trimesh's vertex groups (a pinch sends it to trimesh),
     # and its volume is uncentred: the centred sum below is the one the trimesh route judges by
