@@ -129,7 +129,12 @@ def test_inverted_and_split_bodies_are_named():
     inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
     assert "not positive" in closed_problem(inverted)
     two = trimesh.util.concatenate([box, box.copy().apply_translation([5, 0, 0])])
-    assert "2 separate bodies" in closed_problem(two)
+    assert closed_problem(two) == "2 separate bodies, expected 1"
+    opened = trimesh.Trimesh(box.vertices, box.faces[1:], process=False)
+    assert closed_problem(opened) == "not watertight (3 open edges)"
+    flipped = box.faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert closed_problem(trimesh.Trimesh(box.vertices, flipped, process=False)) == "inconsistent winding"
     assert closed_problem(box) is None
 
 

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
 from volpuzzle import workers
+from volpuzzle.check import closed_problem
 from volpuzzle.compose import cell_joints, pool
 from volpuzzle.compose import sampling as compose_sampling
 from volpuzzle.errors import GeometryError
@@ -161,7 +162,7 @@ def test_every_piece_is_one_closed_outward_solid(name):
     _, t, _, _, pieces = _built(name)
     assert [p.cell for p in pieces] == sorted(t.cells)
     for p in pieces:
-        G.check_solid(p.mesh, p.id)
+        assert closed_problem(p.mesh) is None, p.id
         assert p.volume > 0 and p.volume == pytest.approx(p.body_volume)
         assert p.triangles == len(p.mesh.faces)
         assert p.id == "p" + "-".join(map(str, p.cell))
@@ -312,7 +313,7 @@ def test_any_grid_tiles_the_bent_bar(grid, tol):
     t = tile(vol, grid)
     pieces = C.compose(t, Map(vol, None, _orientation(vol)), [], tol)
     for p in pieces:
-        G.check_solid(p.mesh, p.id)
+        assert closed_problem(p.mesh) is None, p.id
     assert sum(p.volume for p in pieces) == pytest.approx(_volume_by_quadrature(vol), rel=1e-2)
 
 
@@ -347,7 +348,7 @@ def test_joints_keep_pieces_single_closed_solids(style, space):
     pieces = C.compose(t, fmap, joints, sampling.tolerance, sampling=sampling)
     by_cell = {p.cell: p for p in pieces}
     for p, q in zip(pieces, plain, strict=True):
-        G.check_solid(p.mesh, p.id)
+        assert closed_problem(p.mesh) is None, p.id
         assert p.body_volume == pytest.approx(q.body_volume)
     for j in joints:
         for c in (j.pin_cell, j.hole_cell):

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volpuzzle import geometry as G
+from volpuzzle.check import closed_problem
 from volpuzzle.errors import GeometryError
 
 
@@ -22,7 +23,7 @@ def test_round_trip_keeps_volume_and_vertices():
     back = G.to_trimesh(m)
     assert m.volume() == pytest.approx(8.0)
     assert len(back.vertices) == len(box.vertices)  # grid vertices of flat faces are not merged away
-    G.check_solid(back, "p0-0-0")
+    assert closed_problem(back) is None
 
 
 def test_not_manifold_names_piece_and_status():
@@ -93,35 +94,6 @@ def test_a_batch_boolean_names_the_operand_that_failed():
         G.boolean_all(good, [good.translate((2, 0, 0)), bad], "union", "p9 (pins)")
 
 
-def test_check_solid_open_mesh():
-    box = _cube_mesh()
-    with pytest.raises(GeometryError, match="not closed"):
-        G.check_solid(trimesh.Trimesh(box.vertices, box.faces[1:], process=False), "p")
-
-
-def test_check_solid_inconsistent_winding():
-    box = _cube_mesh()
-    f = box.faces.copy()
-    f[0] = f[0, [0, 2, 1]]
-    with pytest.raises(GeometryError, match="consistently oriented"):
-        G.check_solid(trimesh.Trimesh(box.vertices, f, process=False), "p")
-
-
-def test_check_solid_two_bodies():
-    a = _cube_mesh()
-    b = _cube_mesh()
-    b.apply_translation((5, 0, 0))
-    both = trimesh.util.concatenate([a, b])
-    with pytest.raises(GeometryError, match="2 separate bodies"):
-        G.check_solid(both, "p")
-
-
-def test_check_solid_inward_normals():
-    box = _cube_mesh()
-    with pytest.raises(GeometryError, match="normals must face outward"):
-        G.check_solid(trimesh.Trimesh(box.vertices, box.faces[:, [0, 2, 1]], process=False), "p")
-
-
 def test_weld_collapses_a_face_to_a_line():
     # a wedge: the box's x=0 face squeezed onto the z axis, as at a cone's axis
     box = _cube_mesh().subdivide()
@@ -130,7 +102,7 @@ def test_weld_collapses_a_face_to_a_line():
     v[np.isclose(v[:, 0], -1.0), 0] = -1.0
     v2, f2 = G.weld(v, box.faces, 1e-9)
     mesh = trimesh.Trimesh(v2, f2, process=False)
-    G.check_solid(mesh, "wedge")
+    assert closed_problem(mesh) is None
     assert mesh.volume == pytest.approx(6.0)  # the squeeze reaches only to the next grid plane, x = 0
 
 
@@ -143,7 +115,7 @@ def test_weld_cancels_coincident_opposite_faces():
     f = np.vstack([a.faces, a.faces[:, [0, 2, 1]] + len(a.vertices)])
     v, f = G.weld(v, f, 1e-9)
     mesh = trimesh.Trimesh(v, f, process=False)
-    G.check_solid(mesh, "pair")
+    assert closed_problem(mesh) is None, "pair"
     assert mesh.volume == pytest.approx(2.0)
 
 

@@ -16,6 +16,7 @@ from volpuzzle import compose as C
 from volpuzzle import geometry as G
 from volpuzzle import joint as J
 from volpuzzle import label as L
+from volpuzzle.check import closed_problem
 from volpuzzle.errors import GeometryError
 from volpuzzle.mapping import Map
 from volpuzzle.spline import Volume
@@ -123,7 +124,7 @@ def _axis_gap(solid, j):
 
 
 def _check_engraving(body, out, site, joints, cell, depth=L.DEPTH_MM):
-    G.check_solid(G.to_trimesh(out), cell.id)
+    assert closed_problem(G.to_trimesh(out)) is None, cell.id
     cs = L.text_cross_section(site.text, site.height_mm)
     lost = body.volume() - out.volume()
     assert abs(lost - cs.area() * depth) <= 0.2 * cs.area() * depth
@@ -227,7 +228,7 @@ def test_curved_face_keeps_the_depth_under_all_the_text():
     sag = float(site.heights.max() - site.heights.min())
     assert sag > 0.5  # the face really bends under the text
     out = L.engrave(body, site, what=cell.id)
-    G.check_solid(G.to_trimesh(out), cell.id)
+    assert closed_problem(G.to_trimesh(out)) is None, cell.id
 
     cs = L.text_cross_section(site.text, site.height_mm)
     inside = np.concatenate([np.asarray(p) for p in cs.offset(-0.1, m3.JoinType.Round).to_polygons()]
@@ -504,7 +505,7 @@ def test_a_piece_cut_by_a_mesh_is_labelled_on_its_own_faces_from_the_start(monke
     assert cover == [1.0]  # one site measured, on the piece: none lost off it
     ink = L.text_cross_section(site.text, site.height_mm).area() * L.DEPTH_MM
     assert abs(piece.volume() - out.volume() - ink) <= 0.2 * ink
-    G.check_solid(G.to_trimesh(out), cell.id)
+    assert closed_problem(G.to_trimesh(out)) is None, cell.id
     # searched on the cage cell's faces first, sites in the middle of the face are measured and found off the piece
     cover.clear()
     L.label_piece(piece, cell, tiling, fmap, mine, texts=("p0-0-0", "1"))

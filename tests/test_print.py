@@ -8,6 +8,7 @@ from test_compose import CASES, _orientation, _warp  # noqa: E402  (the small an
 
 from volpuzzle import compose as C
 from volpuzzle import geometry as G
+from volpuzzle.check import closed_problem
 from volpuzzle.mapping import Map
 from volpuzzle.tile import tile
 
@@ -31,7 +32,7 @@ def test_neighbours_are_apart_by_the_face_clearance_and_volumes_add_up(name):
     _, _, gapped = _pieces(name, clearance)
     by_cell = {p.cell: p for p in gapped}
     for p in gapped:
-        G.check_solid(p.mesh, p.id)
+        assert closed_problem(p.mesh) is None, p.id
     for f in t.faces:
         ma, mb = by_cell[f.lower].mesh, by_cell[f.upper].mesh
         a, b = G.from_trimesh(ma, "a"), G.from_trimesh(mb, "b")
@@ -72,7 +73,7 @@ def test_a_cut_meeting_the_outside_at_a_shallow_angle_keeps_the_whole_clearance(
     gapped = C.compose(t, fmap, [], 0.1, sampling=sampling, face_clearance=clearance)
     by_cell = {p.cell: p for p in gapped}
     for p, q in zip(plain, gapped, strict=True):
-        G.check_solid(q.mesh, q.id)
+        assert closed_problem(q.mesh) is None, q.id
         assert q.volume < p.volume
     for f in t.faces:
         a, b = G.from_trimesh(by_cell[f.lower].mesh, "a"), G.from_trimesh(by_cell[f.upper].mesh, "b")
@@ -178,7 +179,7 @@ def test_a_piece_without_a_flat_face_gets_a_base_cut_that_holds_it():
     pose = plan_pose(ball)
     assert 0 < pose.base_cut_mm <= 0.6
     cut, removed = base_cut(ball, pose)
-    G.check_solid(cut, "cut ball")
+    assert closed_problem(cut) is None, "cut ball"
     assert removed == pytest.approx(ball.volume - cut.volume, rel=1e-6) and 0 < removed < 0.01 * ball.volume
     placed = cut.copy().apply_transform(pose.rotation)
     assert bed_contact(placed.vertices, placed.faces) >= 25.0 - 1e-6  # BASE_TARGET[0]
@@ -455,7 +456,7 @@ def test_a_base_cut_drops_a_speck_it_parts_from_the_piece_but_refuses_to_cut_a_p
 
     pose = Pose(np.eye(4), np.array([0.0, 0.0, -1.0]), 0.2, 100.0, 0, 0, 0, 0)
     cut, removed = base_cut(piece(0.5), pose)  # the bump above the cut: 0.5 x 0.5 x 0.3 = 0.075 mm^3
-    G.check_solid(cut, "cut")
+    assert closed_problem(cut) is None, "cut"
     assert cut.volume == pytest.approx(1000 - 0.2 * 100, rel=1e-9) and removed > 20
     with pytest.raises(GeometryError, match=r"\(base cut\): the mesh has 2 separate bodies"):
         base_cut(piece(3.0), pose)  # 3 x 0.5 x 2.8 mm is a part of the piece, not a speck
@@ -502,7 +503,7 @@ def test_loose_dowels_lie_flat_on_the_plate_on_a_flat_that_holds_them():
         assert bed_contact(mesh.vertices, mesh.faces, place.transform) >= MIN_BED_MM2
         lost = before.volume - mesh.volume
         assert 0 < lost < 0.05 * before.volume  # the dowel keeps its size: only the flat is taken off
-        G.check_solid(mesh, name)
+        assert closed_problem(mesh) is None, name
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -180,23 +180,6 @@ def boxes_nested(a, b):
     return bool((np.all(alo >= blo) and np.all(ahi <= bhi)) or (np.all(blo >= alo) and np.all(bhi <= ahi)))
 
 
-def check_solid(mesh, what):
-    """Raise GeometryError unless mesh is watertight, consistently wound, one body and encloses positive volume."""
-    if len(mesh.faces) == 0:
-        raise GeometryError(f"{what}: the mesh has no triangles")
-    if not mesh.is_watertight:
-        raise GeometryError(f"{what}: the mesh is not closed (some edges do not have exactly two triangles)")
-    if not mesh.is_winding_consistent:
-        raise GeometryError(f"{what}: the mesh's triangles are not consistently oriented")
-    bodies = mesh.body_count
-    if bodies != 1:
-        raise GeometryError(f"{what}: the mesh has {bodies} separate bodies (expected one solid)")
-    vol = float(mesh.volume)
-    if not vol > 0:
-        raise GeometryError(f"{what}: the mesh encloses volume {vol:g} mm^3 (expected > 0: normals must face outward)")
-    return mesh
-
-
 def weld(vertices, faces, tol):
     """Merge vertices closer than tol and drop triangles that then repeat a vertex, e.g. where a face of the
     parameter box collapses to a line or a point (a cone's axis, a sphere's pole).

@@ -281,7 +281,7 @@ def base_cut(mesh, pose, what="piece"):
     kept = trim(solid, -down, pose.base_cut_mm - lowest, f"{what} (base cut)")
     # a speck the flat parts from a sharp edge near the bed goes; a piece cut in two is refused. The engine's solid
     # (status checked by trim) is closed and outward by its guarantee, so its body count is all there is to ask:
-    # trimesh's check_solid of the same mesh cost ~8 ms a piece
+    # trimesh's closed test of the same mesh cost ~8 ms a piece
     one = kept_bodies(kept, 1, float(solid.volume()), 0.0)
     if one is None:
         bodies = len(kept.decompose())

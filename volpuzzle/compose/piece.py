@@ -41,7 +41,7 @@ def build_piece(cell, sampling, fmap, joints, face_clearance=0.0, surface=None):
         raise GeometryError(f"{what}: the piece falls apart into {len(parts)} bodies after its joints "
                             f"(expected one; a hole may cut through a thin piece: use a smaller joints.radius "
                             f"or joints.length)")
-    # No trimesh check_solid here: a solid the engine made with no error status (every step above checks it) is a
+    # No trimesh closed test here: a solid the engine made with no error status (every step above checks it) is a
     # closed, consistently wound, outward 2-manifold by the engine's own guarantee, and it is one non-empty body
     # (above). Asking trimesh the same of its mesh cost ~9 ms a piece, and its caches were not kept (the pool
     # rebuilds the mesh from the arrays); the check stage still judges every piece from its written float32 mesh.
