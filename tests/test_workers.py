@@ -471,6 +471,14 @@ def test_plates_are_written_by_the_workers_from_the_first_and_on_the_3mf_thread_
         assert not here[plates[0]] and here[plates[-1]]
 
 
+def test_settling_a_prefetch_after_its_pool_closed_says_nothing():
+    # a failed export settles its prefetches; once the pool is closed (its folder and workers gone) nothing runs
+    workers = W.Workers(2)
+    ahead = workers.prefetch(_sleep, 0.5)
+    workers.close()
+    ahead.settle()
+
+
 def _write_slowly(path, flags, pause):
     # a writer that makes its own folder (as one nested deeper could): begun, it would recreate a removed folder
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -415,7 +415,12 @@ class Prefetch:
     def settle(self) -> None:
         """Make sure nothing of it runs after this returns, its result unwanted (a failed export removing the folder
         it writes into): claimed here, no worker begins it; one that has begun is waited for, whatever it gives."""
-        if self._future is None or _claim(self._claim):
+        if self._future is None:
+            return
+        try:
+            if _claim(self._claim):
+                return
+        except OSError:  # the pool's folder is gone with the pool, whose workers were ended
             return
         try:
             self._future.result()
