@@ -166,3 +166,86 @@ def test_a_small_folder_is_checked_without_starting_numba(built):
             f"print(check_directory({str(built)!r})['passed'], 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["True", "False"]
+
+
+def _edit_report(directory, change):
+    report = json.loads((directory / "report.json").read_text())
+    change(report)
+    (directory / "report.json").write_text(json.dumps(report))
+    return report
+
+
+def _truncate(path):
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+@pytest.mark.parametrize("edit, words", [
+    # the files printed besides the pieces: the plates, the assembled puzzle
+    (lambda d: (d / "plates" / "plate-01.3mf").unlink(), ["missing file plates/plate-01.3mf (plates[0].file)"]),
+    (lambda d: (d / "puzzle.3mf").write_bytes(b""), ["puzzle.3mf: empty file (puzzle.3mf)"]),
+    (lambda d: _truncate(d / "plates" / "plate-01.3mf"), ["plates/plate-01.3mf: not a readable 3MF file"]),
+    # what report.json (and report.md) says of the pieces against their files
+    (lambda d: _edit_report(d, lambda r: r["pieces"][0].update(triangles=5)),
+     ["pieces[0].triangles: report.json gives p0-0-0 5, its file holds"]),
+    (lambda d: _edit_report(d, lambda r: r["pieces"][1].update(bbox_mm=[[0, 0, 0], [1, 1, 1]])),
+     ["pieces[1].bbox_mm: report.json gives", "its file spans"]),
+    (lambda d: _edit_report(d, lambda r: r["pieces"][2].update(plate=7)),
+     ["pieces[2].plate: report.json gives", "plate 7, plates lists it on plate 1"]),
+    (lambda d: _edit_report(d, lambda r: r["plates"][0]["pieces"].pop(0)), ["is on no plate"]),
+    (lambda d: _edit_report(d, lambda r: r.update(plates=[])), ["is on no plate"]),
+    (lambda d: _edit_report(d, lambda r: r["plates"].append({"file": "plates/plate-01.3mf",
+                                                              "pieces": [r["pieces"][0]["id"]]})),
+     ["is on plates 1, 2 (expected one)"]),
+])
+def test_check_fails_a_folder_whose_other_files_or_report_disagree(copy, edit, words):
+    edit(copy)
+    fails(copy, *words)
+
+
+@pytest.mark.parametrize("change", ["mirror", "scale"])
+def test_a_placement_that_mirrors_or_scales_the_piece_is_refused(copy, change):
+    # a mirrored piece prints as its mirror image, which fits nowhere; a scaled one at another size
+    def edit(report):
+        t = report["pieces"][2]["print"]["plate_transform"]
+        for row in t[:3]:
+            row[0] *= -1.0 if change == "mirror" else 1.5
+
+    _edit_report(copy, edit)
+    fails(copy, "pieces[2].print.plate_transform: not a rotation and a move",
+          "a mirror or a scale would print another shape")
+
+
+def test_a_broken_3mf_piece_and_dowel_are_named_by_their_own_files(tmp_path):
+    from test_export import make_pieces, make_report
+
+    from volpuzzle.export import write_build
+
+    pieces = make_pieces()
+    dowel = trimesh.creation.cylinder(radius=2, height=10, sections=16)
+    target = write_build(tmp_path / "c", pieces, make_report(pieces), fmt="3mf", dowels=[("dowel-00", dowel)])
+    assert check_directory(target)["passed"]
+    _truncate(target / "pieces" / "p0-0-0.3mf")
+    _truncate(target / "dowels" / "dowel-00.3mf")
+    failures = check_directory(target, raise_on_failure=False)["failures"]
+    assert any(f.startswith(f"{target / 'pieces' / 'p0-0-0.3mf'}: not a readable 3MF file") for f in failures)
+    assert not any("/tmp/tmp" in f for f in failures)
+    assert any(f.startswith("dowels/dowel-00.3mf: not a readable 3MF file") for f in failures)
+    (target / "dowels" / "dowel-00.3mf").unlink()
+    assert "missing file dowels/dowel-00.3mf (dowels[0].file)" in check_directory(target, raise_on_failure=False)[
+        "failures"]
+
+
+def test_a_dowel_build_passes_and_each_dowel_must_be_on_one_plate(tmp_path):
+    # dowels are printed as the pieces are: on a plate each, and their files there and whole
+    spec = write_spec(tmp_path, {"name": "dow", "model": {"builtin": {"type": "quarter-torus"}}, "grid": [2, 1, 2],
+                                 "joints": {"style": "dowel"},
+                                 "output": {"directory": str(tmp_path / "out"), "tolerance": 0.3}})
+    volpuzzle.build(spec, jobs=1)
+    out = tmp_path / "out"
+    assert check_directory(out)["passed"]
+    report = json.loads((out / "report.json").read_text())
+    name, rel = report["dowels"][0]["name"], report["dowels"][0]["file"]
+    _edit_report(out, lambda r: [p["pieces"].remove(name) for p in r["plates"] if name in p["pieces"]])
+    fails(out, f"plates: dowel {name} is on 0 plates (expected one)")
+    (out / rel).unlink()
+    fails(out, f"missing file {rel} (dowels[0].file)")

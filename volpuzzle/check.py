@@ -425,7 +425,10 @@ def _load_mesh(path: Path, data: bytes) -> trimesh.Trimesh:
         with tempfile.NamedTemporaryFile(suffix=".3mf") as tmp:
             tmp.write(data)
             tmp.flush()
-            objs = read_3mf(tmp.name)
+            try:
+                objs = read_3mf(tmp.name)
+            except VolpuzzleError as e:  # it names the copy: the user knows the file
+                raise ModelError(str(e).replace(tmp.name, str(path))) from None
         if len(objs) != 1:
             raise ModelError(f"{path}: expected one piece, found {len(objs)} objects")
         _, v, f, _ = objs[0]
@@ -544,6 +547,9 @@ def _check_report_shapes(report, bad):
         if t is not None and not (isinstance(t, list) and len(t) == 4 and all(
                 isinstance(row, list) and len(row) == 4 and all(_finite(x) for x in row) for row in t)):
             raise bad(f"pieces[{k}].print.plate_transform", "not a transform", t, "4 rows of 4 finite numbers")
+        if t is not None and not _rigid(np.array(t, dtype=float)):
+            raise bad(f"pieces[{k}].print.plate_transform", "not a rotation and a move", t,
+                      "a rigid motion: a mirror or a scale would print another shape than the piece")
         obj(f"pieces[{k}].label", e.get("label"))
     spec = obj("spec", report.get("spec"))
     joints = obj("spec.joints", spec.get("joints"))
@@ -569,6 +575,16 @@ def _check_report_shapes(report, bad):
             texts(f"{field}[{k}].pieces", c.get("pieces"))
     assembly = obj("assembly", report.get("assembly"))
     texts("assembly.stuck", assembly.get("stuck"))
+
+
+PLACEMENT_TOL = 1e-4  # report.json writes a transform's entries to 6 decimals
+
+
+def _rigid(t: np.ndarray) -> bool:
+    """Whether the (4, 4) transform t turns and moves without mirroring or scaling (to report.json's rounding)."""
+    r = t[:3, :3]
+    return (bool(np.allclose(t[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=PLACEMENT_TOL))
+            and bool(np.allclose(r.T @ r, np.eye(3), rtol=0.0, atol=PLACEMENT_TOL)) and float(np.linalg.det(r)) > 0)
 
 
 def _short(value) -> str:
@@ -804,7 +820,8 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     checks["printability"]["warnings"] += _unlisted_piece_files(directory, entries)
     checks["failures"] = ([f"missing piece file {m}" for m in missing] + failures + checks["failures"]
                           + joint_failures + graph_failures + checks["printability"]["failures"]
-                          + _report_volume_problems(report, by_id))
+                          + _report_volume_problems(report, by_id) + _report_piece_problems(report, by_id)
+                          + _other_file_problems(directory, report, str(report_path)))
     checks["passed"] = not checks["failures"]
     checks["summary"] = (f"{len(pieces)} of {len(entries)} pieces read, "
                          f"{'all' if checks['all_closed'] else 'not all'} closed, "
@@ -848,6 +865,112 @@ def _report_volume_problems(report, meshes) -> list:
         if abs(held - claimed) > REPORT_VOLUME_RTOL * max(abs(claimed), held):
             problems.append(f"pieces[{k}].volume_mm3: report.json gives {e['id']} {claimed:.6g} mm^3, its file "
                             f"holds {held:.6g} mm^3 (expected within {REPORT_VOLUME_RTOL:.1%})")
+    return problems
+
+
+REPORT_BOUNDS_MM = 1e-3  # a piece's box in report.json against its file's: the files' float32 rounding is ~1e-5 mm
+
+
+def _report_piece_problems(report, meshes) -> list:
+    """Where report.json (and so report.md) describes a piece otherwise than its file holds it (triangles, bbox_mm),
+    or places it on no plate, on two, or on one that is not there."""
+    problems = []
+    plates = report.get("plates")
+    plates = plates if isinstance(plates, list) else []
+    on = {}  # piece id -> the plates (1-based) that list it
+    for n, plate in enumerate(plates, start=1):
+        listed = plate.get("pieces") if isinstance(plate, dict) else None
+        if not (isinstance(listed, list) and all(isinstance(x, str) for x in listed)):
+            problems.append(f"plates[{n - 1}].pieces: not a list of piece ids (got {_short(listed)})")
+            continue
+        for pid in listed:
+            on.setdefault(pid, []).append(n)
+    dowels = report.get("dowels") if isinstance(report.get("dowels"), list) else []
+    dowels = [d.get("name") for d in dowels if isinstance(d, dict) and isinstance(d.get("name"), str)]
+    ids = {e["id"] for e in report["pieces"]} | set(dowels)
+    for pid in sorted(set(on) - ids):
+        problems.append(f"plates: {pid} is on plate {on[pid][0]} but is no piece nor dowel of report.json")
+    for name in dowels if plates else ():  # a dowel is printed as a piece is
+        if len(on.get(name, [])) != 1:
+            problems.append(f"plates: dowel {name} is on {len(on.get(name, []))} plates (expected one)")
+    for k, e in enumerate(report["pieces"]):
+        pid, mesh = e["id"], meshes.get(e["id"])
+        where = f"pieces[{k}]"
+        if mesh is not None and "triangles" in e and e["triangles"] != len(mesh.faces):
+            problems.append(f"{where}.triangles: report.json gives {pid} {_short(e['triangles'])}, its file holds "
+                            f"{len(mesh.faces)}")
+        box = e.get("bbox_mm")
+        if mesh is not None and box is not None:
+            got = np.asarray(mesh.bounds, dtype=float)
+            if not (isinstance(box, list) and len(box) == 2 and all(_vec3(c) for c in box)
+                    and np.allclose(np.array(box, dtype=float), got, rtol=0.0, atol=REPORT_BOUNDS_MM)):
+                problems.append(f"{where}.bbox_mm: report.json gives {pid} {_short(box)}, its file spans "
+                                f"{np.round(got, 4).tolist()} (expected within {REPORT_BOUNDS_MM:g} mm)")
+        plate = e.get("plate")
+        if plate is not None or plates:
+            if len(on.get(pid, [])) > 1:
+                problems.append(f"plates: {pid} is on plates {', '.join(map(str, on[pid]))} (expected one)")
+            elif not on.get(pid):
+                problems.append(f"plates: {pid} is on no plate (expected on the plate {where}.plate gives, of "
+                                f"{len(plates)})")
+            elif plate is not None and plate != on[pid][0]:
+                problems.append(f"{where}.plate: report.json gives {pid} plate {_short(plate)}, plates lists it "
+                                f"on plate {on[pid][0]}")
+    return problems
+
+
+_FILE_MAX_BYTES = 8 << 30  # puzzle.3mf of a 10k-piece puzzle, well below
+
+
+def _other_file_problems(directory: Path, report, where: str) -> list:
+    """The files besides the pieces that the folder holds for printing (SPEC section 5): puzzle.3mf, each plate
+    and dowel report.json lists, the preview it names. Each must be a regular file inside the folder; a 3MF one a
+    ZIP whose parts read back whole, holding a 3D model; a dowel a closed solid, as a piece."""
+    import io
+    import zipfile
+
+    files = [("puzzle.3mf", "puzzle.3mf")]
+    for field in ("plates", "dowels"):
+        listed = report.get(field)
+        if listed is None:
+            continue
+        if not isinstance(listed, list):
+            return [f"{field}: not a list (got {_short(listed)}, expected a list of {{file, ...}} objects)"]
+        for k, entry in enumerate(listed):
+            rel = entry.get("file") if isinstance(entry, dict) else None
+            files.append((f"{field}[{k}].file", rel))
+    if report.get("preview") is not None:
+        files.append(("preview", report.get("preview")))
+    problems = []
+    for field, rel in files:
+        try:
+            path, data = _inside_file(directory, rel, f"{where}: {field}", _FILE_MAX_BYTES)
+        except FileNotFoundError:
+            problems.append(f"missing file {rel} ({field})")
+            continue
+        except VolpuzzleError as e:
+            problems.append(str(e))
+            continue
+        if not data:
+            problems.append(f"{rel}: empty file ({field})")
+        elif path.suffix.lower() == ".3mf":
+            try:
+                with zipfile.ZipFile(io.BytesIO(data)) as z:
+                    broken = z.testzip()
+                    model = any(n.lower().endswith(".model") for n in z.namelist())
+            except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError) as e:
+                problems.append(f"{rel}: not a readable 3MF file ({field}: {e})")
+                continue
+            if broken is not None or not model:
+                problems.append(f"{rel}: not a readable 3MF file ({field}: "
+                                f"{f'part {broken} is damaged' if broken else 'it holds no 3D model'})")
+        if field.startswith("dowels") and data:
+            try:
+                problem = closed_problem(_load_mesh(path, data))
+            except VolpuzzleError as e:
+                problem = str(e)
+            if problem is not None:
+                problems.append(f"{rel}: the dowel is not one closed solid ({problem})")
     return problems
 
 
