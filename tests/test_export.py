@@ -1,6 +1,7 @@
 """The export stage and the 3MF writer: files, read-back, atomicity, determinism."""
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -116,6 +117,29 @@ def test_force_refuses_a_foreign_folder(tmp_path, pieces):
     with pytest.raises(ExportError, match="not a volpuzzle output folder"):
         write_build(tmp_path / "home", pieces, make_report(pieces), force=True)
     assert (tmp_path / "home" / "thesis.tex").read_text() == "precious"
+
+
+def test_an_output_place_that_cannot_be_written_is_refused_before_the_build_begins(tmp_path, monkeypatch):
+    # a read-only disk or someone else's folder: said at once, not after the whole build (root may write anywhere,
+    # so the test denies the folder through os.access, which is what is asked)
+    import os
+
+    import volpuzzle
+    from volpuzzle import pipeline
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = os.access
+
+    def access(path, mode, **kw):
+        return False if Path(path) == locked else real(path, mode, **kw)
+
+    monkeypatch.setattr(os, "access", access)
+    monkeypatch.setattr(pipeline, "prepare", lambda *_a, **_k: pytest.fail("the build began"))
+    spec = Path(__file__).resolve().parent.parent / "specs" / "quarter-torus.yaml"
+    with pytest.raises(ExportError, match=f"cannot create the output folder: {locked} is not writable"):
+        volpuzzle.build(spec, output_dir=locked / "new" / "qt", jobs=1)
+    assert list(locked.iterdir()) == []
 
 
 def test_failure_midway_leaves_nothing(tmp_path, pieces, monkeypatch):

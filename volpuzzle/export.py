@@ -457,6 +457,14 @@ def check_target(target, force: bool = False, protect=()) -> Path:
             raise ExportError(f"{target} is not a volpuzzle output folder (no {MARKER} marker that volpuzzle "
                               f"writes) and not empty; refusing to replace it, even with --force (remove it "
                               f"yourself or choose another -o)")
+    # the folder is written beside the target and renamed into place: where that cannot be, say so before the work
+    # rather than after it (a read-only disk, a folder of someone else's)
+    place = target.parent
+    while not place.exists() and place != place.parent:
+        place = place.parent
+    if place.is_dir() and not os.access(place, os.W_OK | os.X_OK):
+        raise ExportError(f"{target}: cannot create the output folder: {place} is not writable (expected a folder "
+                          f"you may write in; choose another -o)")
     return target
 
 
