@@ -189,3 +189,16 @@ def test_the_local_workers_ignore_ctrl_c_and_this_process_keeps_its_handler():
             cluster.close()
     finally:
         signal.signal(signal.SIGINT, old)
+
+
+def test_a_failed_spec_is_one_line_in_the_table_even_with_a_newline_in_its_path(tmp_path):
+    # `build` flattens its message to one line; batch's result and table do the same (no cluster needed: build_one
+    # is what each worker runs)
+    from volpuzzle.batch import build_one, summary_table
+
+    spec = tmp_path / "no\nthere.yaml"
+    result = build_one(str(spec), None, False, "no\nthere")
+    assert not result.ok and "\n" not in result.error and "spec: file not found" in result.error
+    table = summary_table([result])
+    assert len(table.splitlines()) == 3  # the head, the spec, the count
+    assert "no there  FAILED" in table

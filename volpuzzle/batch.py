@@ -19,7 +19,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ExportError, SpecError
+from .errors import ExportError, SpecError, one_line
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
 
@@ -49,10 +49,10 @@ def build_one(spec_path, output_dir, force, name):
     try:
         report = build(spec_path, output_dir=output_dir, force=force, jobs=1, progress=Progress(False))
     except VolpuzzleError as e:
-        return Result(spec_path, name, None, None, time.perf_counter() - t0, f"error: {e}")
+        return Result(spec_path, name, None, None, time.perf_counter() - t0, f"error: {one_line(e)}")
     except Exception as e:  # noqa: BLE001 - one spec's bug must not stop the batch, nor print a traceback
         return Result(spec_path, name, None, None, time.perf_counter() - t0,
-                      f"internal error: {type(e).__name__}: {e} (please report it)")
+                      f"internal error: {type(e).__name__}: {one_line(e)} (please report it)")
     return Result(spec_path, name, report["spec"]["output"]["directory"], len(report["pieces"]),
                   time.perf_counter() - t0)
 
@@ -150,7 +150,7 @@ def run_batch(specs, output_root=None, jobs=None, scheduler=None, force=False, p
             except Exception as e:  # noqa: BLE001 - a worker that died (KilledWorker) fails its spec only
                 path, _, name = targets[k]
                 results[k] = Result(path, name, None, None, 0.0, f"error: the worker building it failed "
-                                                                 f"({type(e).__name__}: {e})")
+                                                                 f"({type(e).__name__}: {one_line(e)})")
             if progress is not None:
                 progress(done, len(targets), results[k])
     finally:
@@ -177,7 +177,7 @@ def summary_table(results):
     """The table printed at the end: one line per spec. -> str"""
     rows = [("spec", "status", "pieces", "seconds", "folder or error")]
     for r in results:
-        rows.append((r.name, "ok" if r.ok else "FAILED", "" if r.pieces is None else str(r.pieces),
+        rows.append((one_line(r.name), "ok" if r.ok else "FAILED", "" if r.pieces is None else str(r.pieces),
                      f"{r.seconds:.1f}", r.directory if r.ok else r.error))
     widths = [max(len(row[c]) for row in rows) for c in range(4)]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths, strict=True)) + "  " + row[4] for row in rows]
@@ -194,7 +194,7 @@ def terminal_progress():
         return None
 
     def show(done, total, result):
-        show_line(f"batch {done}/{total}: {result.name} {'ok' if result.ok else 'failed'}")
+        show_line(f"batch {done}/{total}: {one_line(result.name)} {'ok' if result.ok else 'failed'}")
         if done == total:
             end_line()  # the summary table follows
 

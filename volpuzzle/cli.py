@@ -10,7 +10,7 @@ import traceback
 import click
 
 from . import __version__, stop
-from .errors import VolpuzzleError
+from .errors import VolpuzzleError, one_line
 from .progress import end_line, warn
 
 
@@ -23,7 +23,7 @@ def _run(func, *args, **kwargs):
         return func(*args, **kwargs)
     except VolpuzzleError as e:
         end_line()  # the message on a line of its own, not after a progress line
-        click.echo(f"error: {_one_line(e)}", err=True)
+        click.echo(f"error: {one_line(e)}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         end_line()
@@ -42,16 +42,11 @@ def _run(func, *args, **kwargs):
         end_line()
         if os.environ.get("VOLPUZZLE_DEBUG"):
             traceback.print_exc()
-        click.echo(f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; set VOLPUZZLE_DEBUG=1 for "
+        click.echo(f"internal error: {type(e).__name__}: {one_line(e)} (please report it; set VOLPUZZLE_DEBUG=1 for "
                    f"details)", err=True)
         sys.exit(2)
     finally:
         stop.restore(previous)
-
-
-def _one_line(e) -> str:
-    """The message on one line: a path or a value with a newline in it must not break the one-line rule."""
-    return " ".join(str(e).split("\n")).replace("\r", " ")
 
 
 @click.group()

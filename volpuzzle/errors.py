@@ -31,3 +31,9 @@ class GeometryError(VolpuzzleError):
 
 class ExportError(VolpuzzleError):
     """Output could not be written."""
+
+
+def one_line(message) -> str:
+    """A message (or an exception) on one line: a path or a value with a newline in it must not break the one-line
+    rule of the command line's errors."""
+    return " ".join(str(message).split("\n")).replace("\r", " ")
