@@ -307,9 +307,35 @@ def _flat_site(text="p0-0-0", height=5.0):
 
 
 def test_engraving_that_splits_the_piece_names_it():
+    # the backstop behind the wall test below: told the wall is thick, the cut itself shows the split
     slab = m3.Manifold.cube((30.0, 12.0, 0.3), True).translate((0, 0, -0.15))
+    told = (np.zeros((9, 25)), np.ones((9, 25), bool), np.full((9, 25), np.inf))
     with pytest.raises(GeometryError, match=r"p0-0-0: engraving the label 'p0-0-0' splits the piece"):
+        L.engrave(slab, _flat_site(), what="p0-0-0", measured=told)
+
+
+@pytest.mark.parametrize("thickness", [0.3, 1.0, 1.19])
+def test_a_label_is_not_engraved_where_the_piece_is_thin_behind_it(thickness):
+    # a groove over a skin thinner than two nozzle lines leaves nothing a slicer keeps: the text would open through
+    # (a gear's cut face with a tooth flank just behind it). Measured by rays through the body, under the whole text
+    slab = m3.Manifold.cube((30.0, 12.0, thickness), True).translate((0, 0, -thickness / 2))
+    with pytest.raises(GeometryError, match=rf"p0-0-0: the piece is {thickness:.2f} mm thick behind the label "
+                                            r"'p0-0-0' \(expected at least 1.2 mm"):
         L.engrave(slab, _flat_site(), what="p0-0-0")
+    # thin only at one end, under the text: refused as well
+    step = (m3.Manifold.cube((30.0, 12.0, 5.0), True).translate((0, 0, -2.5))
+            - m3.Manifold.cube((4.0, 12.0, 5.0), True).translate((11.0, 0.0, -2.5 - thickness)))
+    with pytest.raises(GeometryError, match="thick behind the label"):
+        L.engrave(step, _flat_site(), what="p0-0-0")
+    _, near, wall = L._measured(step, _flat_site())
+    # the thin end measured; the rest reaches past the rays' reach (2 mm below the face): thick enough
+    assert near.all() and wall.min() == pytest.approx(thickness) and np.all(np.isclose(wall, thickness) | (wall > 2))
+
+
+def test_a_label_is_engraved_where_the_piece_is_thick_enough_behind_it():
+    slab = m3.Manifold.cube((30.0, 12.0, 1.25), True).translate((0, 0, -0.625))
+    out = L.engrave(slab, _flat_site(), what="p0-0-0")
+    assert len(out.decompose()) == 1 and out.volume() < slab.volume()
 
 
 def test_engraving_too_small_a_label_names_the_piece():

@@ -42,6 +42,7 @@ STROKES_MM = (MIN_STROKE_MM, FINE_STROKE_MM, HAIR_STROKE_MM)
 MAX_HEIGHT_MM = 8.0
 MARGIN_MM = 1.0  # text box to face edge
 JOINT_CLEAR_MM = 1.0  # text box to a joint's pin/hole surface
+MIN_WALL_MM = 0.8  # material left under the groove: two lines of a 0.4 mm nozzle (a thinner skin a slicer drops)
 TOP_MM = 0.5  # the prism starts this far above the surface, so the cut opens cleanly
 MAX_SLOPE = 0.6  # |grad h| under the text; steeper, the face is too curved there for flat text
 _STEM_EM = 0.178  # stem width of DejaVu Sans Bold in em, measured on '1' (0.2833 to 0.4609 at y = 0.4)
@@ -839,8 +840,11 @@ def _mesh_arrays(body):
 
 
 def _measured(body, site, arrays=None):
-    """_measured_heights, and (ny, nx) bool: where the ray found the body's surface near F's (False where the face
-    of F lies off the body, as a cage's face outside a mesh model does).
+    """_measured_heights, (ny, nx) bool: where the ray found the body's surface near F's (False where the face of F
+    lies off the body, as a cage's face outside a mesh model does), and (ny, nx) mm: how thick the body is there
+    along the ray, from that surface to the next one it meets going down (inf where it meets none within reach, or
+    off the body): a face whose other side comes close behind it (a gear's tooth flank behind a cut face) has no room
+    for a groove.
 
     All rays are parallel, so in the site's frame each is a point of the plane: a triangle is hit where its shadow
     covers the point, at the height its plane has there. Each triangle is tested only against the grid points
@@ -886,14 +890,23 @@ def _measured(body, site, arrays=None):
     np.maximum.at(first, (gj[inside], gi[inside]), z[inside])
     near = np.abs(first - h) < 0.5  # the first hit is this face, not some other part of the piece
     h[near] = first[near]
-    return h, near
+    # the next hit below the first is where the ray leaves the body again (a hit within rounding of the first is the
+    # same surface, met on the edge of two of its triangles)
+    beyond = inside & (z < first[gj, gi] - 1e-6)
+    second = np.full(h.shape, -np.inf)
+    np.maximum.at(second, (gj[beyond], gi[beyond]), z[beyond])
+    wall = np.full(h.shape, np.inf)
+    wall[near] = first[near] - second[near]  # first is finite there; second -inf where the ray leaves nowhere near
+    return h, near, wall
 
 
 def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_MM, arrays=None, measured=None):
     """body (manifold3d.Manifold, mm) with `text` (default, and the text the site was sized for: the site's) cut
-    `depth` mm into it at `site` -> Manifold. measured: _measured_heights(body, site) when the caller has them.
+    `depth` mm into it at `site` -> Manifold. measured: _measured(body, site) when the caller has it.
     The groove is >= depth deep, measured from the body's own surface, everywhere under the text. Raises
-    GeometryError naming `what` when the engine fails or the piece would not stay one solid."""
+    GeometryError naming `what` when the engine fails, when the body is thinner than depth + MIN_WALL_MM anywhere
+    under the text (the groove would leave a skin no printer keeps, or open through), or when the piece would not
+    stay one solid."""
     m3 = _m3()
     text = str(text if text is not None else site.text)
     what = what or f"piece labelled {text}"
@@ -904,7 +917,13 @@ def engrave(body, site, text=None, depth=DEPTH_MM, what=None, stroke=MIN_STROKE_
     if not is_ok(body):
         raise GeometryError(f"{what}: the geometry engine failed before engraving (status {body.status().name})")
     xs, ys = site.grid_x, site.grid_y
-    h = _measured_heights(body, site, arrays) if measured is None else np.array(measured, dtype=float)
+    h, _near, wall = _measured(body, site, arrays) if measured is None else measured
+    h = np.array(h, dtype=float)
+    thinnest = float(np.min(wall, initial=np.inf))
+    if thinnest < depth + MIN_WALL_MM:
+        raise GeometryError(f"{what}: the piece is {thinnest:.2f} mm thick behind the label {text!r} (expected at "
+                            f"least {depth + MIN_WALL_MM:g} mm: the {depth:g} mm groove and {MIN_WALL_MM:g} mm of "
+                            f"wall under it)")
     gy, gx = np.gradient(h, ys, xs)
     # depth along the surface normal: a slope g lowers the floor by depth * sqrt(1 + g^2) measured vertically
     floor = h - depth * np.sqrt(1.0 + gx ** 2 + gy ** 2)
@@ -1064,8 +1083,8 @@ def label_piece(body, cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, wha
                         break
                     tries -= 1
                     if id(site) not in on_body:
-                        h, near = _measured(body, site, arrays)
-                        on_body[id(site)] = site, float(np.mean(near)) >= 0.98, h
+                        found = _measured(body, site, arrays)
+                        on_body[id(site)] = site, float(np.mean(found[1])) >= 0.98, found
                     if not on_body[id(site)][1]:
                         reasons.append("off the piece")
                         off = True
