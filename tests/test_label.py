@@ -536,3 +536,16 @@ def test_a_piece_cut_by_a_mesh_is_labelled_on_its_own_faces_from_the_start(monke
     cover.clear()
     L.label_piece(piece, cell, tiling, fmap, mine, texts=("p0-0-0", "1"))
     assert min(cover) < 0.5 and len(cover) > 1
+
+
+def test_no_piece_number_reads_as_another_turned_upside_down():
+    # a loose piece has no up: '6' and '9' (or '16' and '91') would pass for each other, so such numbers get a dot
+    turned = {"0": "0", "1": "1", "6": "9", "8": "8", "9": "6", ".": "."}
+    texts = [L.number_text(k) for k in range(2000)]
+    assert texts[:12] == ["1", "2", "3", "4", "5", "6.", "7", "8", "9.", "10.", "11", "12"]
+    assert L.number_text(15) == "16." and L.number_text(68) == "69" and L.number_text(87) == "88"
+    known = set(texts)
+    for t in texts:
+        if all(c in turned for c in t):
+            upside_down = "".join(turned[c] for c in reversed(t))
+            assert upside_down == t or upside_down not in known, t

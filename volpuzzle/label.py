@@ -1181,6 +1181,18 @@ def label_pieces(tiling, fmap, pieces, joints, poses=None, workers=None, cut_by_
     return out, sites, removed
 
 
+_TURNED = {"0": "0", "1": "1", "6": "9", "8": "8", "9": "6"}  # digits as they read turned half a turn
+
+
+def number_text(k: int) -> str:
+    """The label of the piece numbered k (from 0) when its id does not fit: k + 1, with a dot after it when the
+    number turned upside down reads as another (6 and 9, 16 and 91): a loose piece has no up, and its number must
+    not pass for another's."""
+    text = str(int(k) + 1)
+    turned = "".join(_TURNED.get(c, "?") for c in reversed(text))
+    return text + "." if "?" not in turned and turned != text else text
+
+
 def _label_one(shared, item):
     """One piece of label_pieces, wherever it runs: shared (tiling, fmap, {cell: its joints}, cut_by_mesh), item
     (number, id, cell, MeshRef, volume, bed direction or None) -> (MeshRef or None when unchanged, volume, label
@@ -1191,7 +1203,7 @@ def _label_one(shared, item):
     tiling, fmap, touching, cut_by_mesh = shared
     k, pid, cell, ref, volume_before, down = item
     # the piece id, else its number in the piece list (report.md gives the key)
-    texts = (pid, str(k + 1))
+    texts = (pid, number_text(k))
     mine = touching.get(cell, [])  # the only joints label_piece looks at
     try:
         body, site, note = label_piece(solid_of(ref.mesh, pid), tiling.cell(cell), tiling, fmap, mine,
@@ -1223,7 +1235,7 @@ def bed_labels(pieces, labels, poses):
             out.append(p)
             continue
         body = from_trimesh(p.mesh, p.id)
-        for text in (p.id, str(k + 1)):
+        for text in (p.id, number_text(k)):
             new, site = engrave_bed(body, pose.rotation, text, what=p.id)
             if site is not None:
                 volume = float(new.volume())
