@@ -150,6 +150,7 @@ def test_box_piece_labelled_on_a_jointless_inner_face():
     assert np.allclose(site.normal, [0, 1, 0]) and abs(site.center[1] - 25.0) < 1e-9
     assert abs(np.dot(site.up, site.normal)) < 1e-12 and site.height_mm >= L.min_height_mm("p0-0-0")
     assert site.to_report()["face"] == "v+" and not site.to_report()["on_joint_face"]
+    assert site.to_report()["mirrored"] is False  # as a bed label says True: every entry says which way it reads
     _check_engraving(body, out, site, joints, cell)
 
 

@@ -255,7 +255,7 @@ class LabelSite:
         return {"text": self.text, "face": "uvw"[self.face[0]] + ("+" if self.face[1] > 0 else "-"),
                 "height_mm": round(float(self.height_mm), 3), "center_mm": [round(float(x), 4) for x in self.center],
                 "normal": [round(float(x), 6) for x in self.normal], "on_joint_face": bool(self.has_joint),
-                "on_outer_face": bool(self.outer)}
+                "on_outer_face": bool(self.outer), "mirrored": False}
 
 
 def _face_joints(face, joints):
