@@ -249,3 +249,13 @@ def test_a_dowel_build_passes_and_each_dowel_must_be_on_one_plate(tmp_path):
     fails(out, f"plates: dowel {name} is on 0 plates (expected one)")
     (out / rel).unlink()
     fails(out, f"missing file {rel} (dowels[0].file)")
+
+
+@pytest.mark.parametrize("value, token", [(float("nan"), "NaN"), (float("-inf"), "-Infinity")])
+def test_a_number_json_does_not_have_is_named_by_its_field(copy, value, token):
+    # a hand-edited report.json: the line names the field that holds it, not only the file
+    def edit(report):
+        report["pieces"][2]["print"]["plate_transform"][0][0] = value
+
+    _edit_report(copy, edit)
+    fails(copy, f"report.json: pieces[2].print.plate_transform[0][0]: {token} is not a JSON number")

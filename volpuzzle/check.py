@@ -796,6 +796,10 @@ def check_directory(directory, raise_on_failure: bool = True) -> dict:
     except RecursionError:
         raise VolpuzzleError(f"{report_path}: unreadable report: nested too deeply") from None
     except (ValueError, UnicodeDecodeError) as e:
+        where = _constant_at(raw)
+        if where is not None:  # a hand edit: say which field holds it
+            raise VolpuzzleError(f"{report_path}: {where[0]}: {where[1]} is not a JSON number (got {where[1]}, "
+                                 f"expected a finite number)") from None
         raise VolpuzzleError(f"{report_path}: unreadable report: {str(e)[:200]}") from None
     entries, expected, tolerance, joints = _report_fields(report, str(report_path))
     pieces, missing, failures = [], [], []
@@ -976,6 +980,29 @@ def _other_file_problems(directory: Path, report, where: str) -> list:
 
 def _no_constant(name):
     raise ValueError(f"{name} is not JSON")
+
+
+class _Constant(str):
+    """NaN, Infinity or -Infinity where report.json holds one (_constant_at)."""
+
+
+def _constant_at(raw: bytes):
+    """(field, token) of the first NaN or Infinity in report.json's bytes, e.g. ('pieces[2].volume_mm3', 'NaN'), or
+    None when there is none or the text is otherwise unreadable."""
+    try:
+        tree = json.loads(raw.decode("utf-8"), parse_constant=_Constant)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return None
+    todo = [("", tree)]
+    while todo:
+        field, node = todo.pop(0)
+        if isinstance(node, _Constant):
+            return field or "(top level)", str(node)
+        if isinstance(node, dict):
+            todo[:0] = [(f"{field}.{k}" if field else str(k), v) for k, v in node.items()]
+        elif isinstance(node, list):
+            todo[:0] = [(f"{field}[{k}]", v) for k, v in enumerate(node)]
+    return None
 
 
 def _finite_float(text):
