@@ -4,17 +4,18 @@ The text is DejaVu Sans Bold (it ships with matplotlib), flattened to polygons a
 '0', '4', '6', '8', '9', 'p' come out as holes. We engrave rather than emboss: the result stays one solid whatever the
 glyphs (an island inside an 'o' is simply material left standing).
 
-Site rule. Every face the cell shares with a neighbour (tiling.faces, also across a periodic seam) is a candidate;
-outer faces of D never are. On each candidate, centres on a grid of face fractions and two text directions (up along
-either in-face parameter) are tried; the text's height is the largest that keeps its box a margin inside the face
-(projected on the tangent plane at the centre) and R = reach + clearance + 1 mm from every joint axis of the piece
-(pin, hole or dowel, whatever face it is on), capped at MAX_HEIGHT_MM. Faces that carry no joint win if any of them
-holds a label; otherwise the best spot away from the joint circles on a jointed face is used; then D's outer faces,
-those that look into the model first (the inside of a shell, out of sight once assembled). Within a class: larger
-text, then nearer the face centre, then the first in face order. Too small for the stroke asked (MIN_STROKE_MM, then
-the finer STROKES_MM): no site. A mesh model's piece covers only part of its cage cell's faces: label_piece then
-searches again on the piece's real outline on each face (_BodyFaces), and its caller may mirror the id on the bed side
-(engrave_bed) as the last resort.
+Site rule. Every face the cell shares with a neighbour (tiling.faces, also across a periodic seam) is a candidate, and
+D's outer faces after them (below). On each candidate, centres on a grid of face fractions and two text directions (up
+along either in-face parameter) are tried; the text's height is the largest that keeps its box a margin inside the face
+(projected on the tangent plane at the centre) and R = reach + clearance + 1 mm from every joint axis of the piece (pin,
+hole or dowel, whatever face it is on), capped at MAX_HEIGHT_MM. Faces that carry no joint win if any of them holds a
+label; otherwise the best spot away from the joint circles on a jointed face is used; then D's outer faces, those that
+look into the model first (the inside of a shell, out of sight once assembled). Within a class: larger text, then nearer
+the face centre, then the first in face order. Too small for the stroke asked (MIN_STROKE_MM, then the finer
+STROKES_MM): no site. A mesh model's piece covers only part of its cage cell's faces: label_piece then searches again on
+the piece's real outline on each face (_BodyFaces), and its caller may mirror the id on the bed side (engrave_bed) as
+the last resort. A site where the piece is thinner than the groove and MIN_WALL_MM behind the text is passed over
+(engrave measures it with the same rays as the surface).
 
 Curvature. The text prism is built in the tangent frame at the site and bent onto the face: its floor follows the
 surface measured under the text (from the body mesh itself by ray casting, falling back to F), lowered by
