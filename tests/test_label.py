@@ -436,7 +436,7 @@ def test_measured_heights_match_one_ray_per_sample():
     cell = tiling.cell((0, 1, 0))
     body = G.from_trimesh(C.build_piece(cell, C.sample_parameters(tiling, fmap, 0.05), fmap, []).mesh, cell.id)
     site = L.choose_label_site(cell, tiling, fmap, [])
-    got = L._measured_heights(body, site)
+    got = L._measured(body, site)[0]
     frame, want = site.frame(), np.array(site.heights, dtype=float)
     span = float(want.max() - want.min()) + 2.0
     for j, y in enumerate(site.grid_y):

@@ -827,12 +827,6 @@ def choose_label_site(cell, tiling, fmap, joints, text=None, depth=DEPTH_MM, str
 # Engraving
 
 
-def _measured_heights(body, site, arrays=None):
-    """Heights (ny, nx) of the body's own surface above the site's tangent plane (its printed surface, not F), by a
-    ray down the normal at every grid point; F's height where the ray finds nothing near it."""
-    return _measured(body, site, arrays)[0]
-
-
 def _mesh_arrays(body):
     """A Manifold's vertices (n, 3) float64 and triangles (m, 3) int64."""
     mesh = body.to_mesh64()
@@ -841,11 +835,12 @@ def _mesh_arrays(body):
 
 
 def _measured(body, site, arrays=None):
-    """_measured_heights, (ny, nx) bool: where the ray found the body's surface near F's (False where the face of F
-    lies off the body, as a cage's face outside a mesh model does), and (ny, nx) mm: how thick the body is there
-    along the ray, from that surface to the next one it meets going down (inf where it meets none within reach, or
-    off the body): a face whose other side comes close behind it (a gear's tooth flank behind a cut face) has no room
-    for a groove.
+    """Heights (ny, nx) of the body's own surface above the site's tangent plane (its printed surface, not F), by a ray
+    down the normal at every grid point, F's height where the ray finds nothing near it; (ny, nx) bool: where the ray
+    found the body's surface near F's (False where the face of F lies off the body, as a cage's face outside a mesh
+    model does); and (ny, nx) mm: how thick the body is there along the ray, from that surface to the next one it meets
+    going down (inf where it meets none within reach, or off the body): a face whose other side comes close behind it (a
+    gear's tooth flank behind a cut face) has no room for a groove.
 
     All rays are parallel, so in the site's frame each is a point of the plane: a triangle is hit where its shadow
     covers the point, at the height its plane has there. Each triangle is tested only against the grid points
