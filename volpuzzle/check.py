@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from .errors import GeometryError, ModelError, VolpuzzleError
-from .geometry import boolean, boxes_nested, check_status, cylinder, is_ok, kernel_arrays
+from .geometry import boolean, boxes_nested, check_status, cylinder, is_ok, joined, kernel_arrays
 from .geometry import memo as _memo
 from .grid import frame_from_direction
 
@@ -60,7 +60,7 @@ def _closed_problem(mesh):
         return f"not watertight ({len(edges)} open edges)" if len(edges) else "not watertight (non-manifold edges)"
     if not m.is_winding_consistent:
         return "inconsistent winding"
-    bodies = _bodies_across_edges(m)
+    bodies = joined(m.face_adjacency, len(m.faces))[0]  # the triangles joined across the edges they share
     if bodies != 1:
         # trimesh's body_count joins bodies at a shared vertex; the loader (io.mesh.mesh_problems) does not, and a
         # piece of two parts that touch at a point prints as two parts
@@ -70,16 +70,6 @@ def _closed_problem(mesh):
     if not vol > 0:
         return f"volume {vol:.6g} mm^3 is not positive (normals point inwards)"
     return None
-
-
-def _bodies_across_edges(m) -> int:
-    """How many parts the triangles of the watertight mesh m fall into, joined across the edges they share."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    pairs = np.asarray(m.face_adjacency, dtype=np.int64).reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(m.faces),) * 2)
-    return int(connected_components(graph, directed=False)[0])
 
 
 def _plainly_closed(mesh) -> bool:

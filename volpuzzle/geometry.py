@@ -197,8 +197,7 @@ def weld(vertices, faces, tol):
         pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
         if len(pairs):
             # clusters are the connected components of the close pairs; each maps to its smallest index
-            graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(v),) * 2)
-            _, comp = connected_components(graph, directed=False)
+            _, comp = joined(pairs, len(v))
             low = np.full(comp.max() + 1, len(v), dtype=np.int64)
             np.minimum.at(low, comp, np.arange(len(v)))
             f = low[comp][f]
@@ -218,6 +217,15 @@ def weld(vertices, faces, tol):
         f = f[keep & once]
     used, f = np.unique(f, return_inverse=True)
     return v[used], f.reshape(-1, 3)
+
+
+def joined(pairs, n):
+    """The parts n items fall into when each pair (k, 2) of their indices joins two: -> (count, (n,) part of each
+    item, numbered from 0; an item in no pair is a part of its own)."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    count, part = connected_components(graph, directed=False)
+    return int(count), part
 
 
 def unique_pairs(e):

@@ -101,16 +101,13 @@ def _setback(xyz, faces, slot, cut, half, apex=None):
     Where no move of a point is behind all its cut triangles (an apex where cones meet over more than half a turn,
     the centre of a sphere cage) and `apex` is given, apex(points (k,) indices into xyz, half) -> ApexInset or None
     sets back the points around it through the map (_apex_inset)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     nv = len(xyz)
     cluster = np.arange(nv)
     pairs = cKDTree(xyz).query_pairs(WELD_MM, output_type="ndarray")
     if len(pairs):
-        graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
-        _, cluster = connected_components(graph, directed=False)
+        _, cluster = geometry.joined(pairs, nv)
     nc = int(cluster.max()) + 1
     t = xyz[faces]
     cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])

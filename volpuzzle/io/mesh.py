@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 
 from ..errors import ModelError
-from ..geometry import unique_pairs
+from ..geometry import joined, unique_pairs
 from . import regular_file_problem
 
 EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf", ".glb")
@@ -360,12 +360,7 @@ def mesh_problems(mesh):
                    f"near {_near(mesh, incons)}")
     # bodies: faces joined across the edges that exactly two triangles share (as trimesh's face_adjacency), from the
     # sort above rather than trimesh's own (3 s at 1.2M faces)
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    pairs = np.stack([first, second], axis=1) % len(faces)
-    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(faces),) * 2)
-    nb, labels = connected_components(graph, directed=False)
+    nb, labels = joined(np.stack([first, second], axis=1) % len(faces), len(faces))
     if nb > 1:
         sizes = np.sort(np.bincount(labels))[::-1]
         shown = ", ".join(str(s) for s in sizes[:5]) + (", ..." if nb > 5 else "")
